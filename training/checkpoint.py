@@ -1,0 +1,260 @@
+"""Safe checkpoints: a stem DIR/NAME is NAME.safetensors (weights only) + NAME.json (the card).
+
+The card holds everything needed to rebuild the policy and to act (kind, architecture, normalization),
+plus how it was made (config, steps, wall time, evaluation, git commit, ONNX export). Loading reads
+only safetensors and JSON, never pickle; every problem raises `CheckpointError` naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from training.policies import POLICY_KINDS, ActingPolicy, build_policy, count_parameters
+
+CARD_FIELDS = (
+    "name",
+    "kind",
+    "architecture",
+    "num_parameters",
+    "config",
+    "normalization",
+    "steps",
+    "wall_time_s",
+    "evaluation",
+    "git_commit",
+    "onnx",
+)
+NORMALIZATION_KEYS = ("state_mean", "state_std", "action_mean", "action_std")
+WEIGHTS_SUFFIX = ".safetensors"
+CARD_SUFFIX = ".json"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, corrupt, or does not match its card."""
+
+
+def save_checkpoint(stem: str | Path, policy: torch.nn.Module, normalization: dict[str, Any], **card_fields: Any) -> dict[str, Any]:
+    """Write STEM.safetensors and STEM.json; returns the card. Extra card fields (config, steps, ...) pass through."""
+    stem = checkpoint_stem(stem)
+    if isinstance(policy, ActingPolicy):
+        policy = policy.policy
+    kind = getattr(policy, "kind", None)
+    if kind not in POLICY_KINDS:
+        raise ValueError(f"policy must be an MSEPolicy or FlowPolicy, got {type(policy).__name__}")
+    architecture = policy.architecture
+    card: dict[str, Any] = {
+        "name": stem.name,
+        "kind": kind,
+        "architecture": architecture,
+        "num_parameters": count_parameters(policy),
+        "config": {},
+        "normalization": _check_normalization(_normalization_lists(normalization), architecture, where="normalization"),
+        "steps": 0,
+        "wall_time_s": 0.0,
+        "evaluation": None,
+        "git_commit": None,
+        "onnx": None,
+    }
+    fixed = {"kind", "architecture", "num_parameters", "normalization"}
+    clashes = sorted(fixed & set(card_fields))
+    if clashes:
+        raise ValueError(f"card fields {clashes} are derived from the policy and cannot be given")
+    card.update(card_fields)
+    if card["git_commit"] is None:
+        card["git_commit"] = git_commit()
+    text = json.dumps(card, indent=2, allow_nan=False) + "\n"  # fails early on non-JSON config values
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    # contiguous copies: safetensors refuses shared or strided storage
+    weights = {k: v.detach().to("cpu").contiguous().clone() for k, v in policy.state_dict().items()}
+    tmp = stem.with_name(stem.name + WEIGHTS_SUFFIX + ".tmp")
+    save_file(weights, str(tmp), metadata={"format": "pt", "kind": kind})
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, stem.with_suffix(WEIGHTS_SUFFIX))
+    write_text_atomic(stem.with_suffix(CARD_SUFFIX), text)
+    return card
+
+
+def load_checkpoint(stem: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """The policy (eval mode) and its card from STEM.safetensors + STEM.json."""
+    stem = checkpoint_stem(stem)
+    card = load_card(stem)
+    weights_path = stem.with_suffix(WEIGHTS_SUFFIX)
+    try:
+        policy = build_policy(card["kind"], **card["architecture"])
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{stem.with_suffix(CARD_SUFFIX)}: bad architecture {card['architecture']!r}: {exc}") from None
+    if count_parameters(policy) != card["num_parameters"]:
+        raise CheckpointError(
+            f"{stem.with_suffix(CARD_SUFFIX)}: num_parameters {card['num_parameters']} does not match its architecture ({count_parameters(policy)})"
+        )
+    weights = _read_weights(weights_path)
+    expected = policy.state_dict()
+    missing = sorted(set(expected) - set(weights))
+    unexpected = sorted(set(weights) - set(expected))
+    if missing or unexpected:
+        raise CheckpointError(
+            f"{weights_path}: weights do not fit the card's {card['kind']} architecture (missing {missing[:5]}, unexpected {unexpected[:5]})"
+        )
+    for key, tensor in weights.items():
+        if tuple(tensor.shape) != tuple(expected[key].shape):
+            raise CheckpointError(
+                f"{weights_path}: weight {key} has shape {list(tensor.shape)}, the card's architecture needs {list(expected[key].shape)}"
+            )
+        if not tensor.is_floating_point():
+            raise CheckpointError(f"{weights_path}: weight {key} has dtype {tensor.dtype}, expected a float")
+        if not torch.isfinite(tensor).all():
+            raise CheckpointError(f"{weights_path}: weight {key} contains NaN or inf")
+    policy.load_state_dict(weights, strict=True)
+    policy.eval()
+    return policy, card
+
+
+def load_acting_policy(stem: str | Path, num_steps: int = 10) -> ActingPolicy:
+    """The checkpoint's policy wrapped with its normalization (eval mode): env units in, clipped actions out."""
+    policy, card = load_checkpoint(stem)
+    acting = ActingPolicy(policy, num_steps=num_steps, **card["normalization"])
+    return acting.eval()
+
+
+def load_card(stem: str | Path) -> dict[str, Any]:
+    """The validated card STEM.json (every field present, kind and normalization well formed)."""
+    stem = checkpoint_stem(stem)
+    path = stem.with_suffix(CARD_SUFFIX)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint card not found")
+    try:
+        card = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CheckpointError(f"{path}: card is not valid JSON: {exc}") from None
+    validate_card(card, path)
+    return card
+
+
+def validate_card(card: Any, path: str | Path) -> None:
+    """Raise CheckpointError (naming `path`) unless `card` has every field with a sane kind, architecture and normalization."""
+    if not isinstance(card, dict):
+        raise CheckpointError(f"{path}: card must be a JSON object, got {type(card).__name__}")
+    missing = [f for f in CARD_FIELDS if f not in card]
+    if missing:
+        raise CheckpointError(f"{path}: card is missing fields {missing}")
+    if card["kind"] not in POLICY_KINDS:
+        raise CheckpointError(f"{path}: unknown policy kind {card['kind']!r}; expected one of {POLICY_KINDS}")
+    if not isinstance(card["architecture"], dict):
+        raise CheckpointError(f"{path}: architecture must be an object, got {card['architecture']!r}")
+    if isinstance(card["num_parameters"], bool) or not isinstance(card["num_parameters"], int):
+        raise CheckpointError(f"{path}: num_parameters must be an int, got {card['num_parameters']!r}")
+    try:
+        _check_normalization(card["normalization"], card["architecture"], where="normalization")
+    except ValueError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+    onnx = card["onnx"]
+    if onnx is not None and not (isinstance(onnx, dict) and isinstance(onnx.get("file"), str)):
+        raise CheckpointError(f"{path}: onnx must be null or an object with a 'file', got {onnx!r}")
+
+
+def update_card(stem: str | Path, **fields: Any) -> dict[str, Any]:
+    """Set top-level card fields (e.g. onnx, evaluation) and rewrite the card atomically; returns it."""
+    stem = checkpoint_stem(stem)
+    card = load_card(stem)
+    fixed = {"kind", "architecture", "num_parameters", "normalization"}
+    clashes = sorted(fixed & set(fields))
+    if clashes:
+        raise ValueError(f"card fields {clashes} describe the weights and cannot be updated")
+    card.update(fields)
+    path = stem.with_suffix(CARD_SUFFIX)
+    validate_card(card, path)
+    write_text_atomic(path, json.dumps(card, indent=2, allow_nan=False) + "\n")
+    return card
+
+
+def checkpoint_stem(stem: str | Path) -> Path:
+    """DIR/NAME from DIR/NAME, DIR/NAME.json or DIR/NAME.safetensors (other suffixes are part of the name)."""
+    path = Path(stem)
+    if path.suffix in (CARD_SUFFIX, WEIGHTS_SUFFIX, ".onnx"):
+        path = path.with_suffix("")
+    if not path.name:
+        raise CheckpointError(f"{stem!s}: not a checkpoint stem (expected DIR/NAME)")
+    return path
+
+
+def git_commit(cwd: str | Path | None = None) -> str:
+    """The current commit hash (with '-dirty' if the tree has changes), or 'unknown' outside a git repo."""
+    where = Path(cwd) if cwd is not None else Path(__file__).resolve().parent
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=where, capture_output=True, text=True, timeout=10)
+        if head.returncode != 0:
+            return "unknown"
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=where, capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    commit = head.stdout.strip()
+    return commit + ("-dirty" if dirty.returncode == 0 and dirty.stdout.strip() else "")
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write `text` to `path` via a temporary file and rename, so readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(text)
+        os.chmod(tmp, 0o644)  # mkstemp makes 0600; cards are read by the service, maybe as another user
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _read_weights(path: Path) -> dict[str, torch.Tensor]:
+    if not path.is_file():
+        raise CheckpointError(f"{path}: weights file not found")
+    try:
+        return load_file(str(path), device="cpu")
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"{path}: not a readable safetensors file: {exc}") from None
+
+
+def _normalization_lists(normalization: Any) -> dict[str, Any]:
+    """Plain float lists from a dict of arrays/tensors/lists (or an object with to_dict())."""
+    if hasattr(normalization, "to_dict"):
+        normalization = normalization.to_dict()
+    if not isinstance(normalization, dict):
+        raise ValueError(f"normalization must be a dict with {list(NORMALIZATION_KEYS)}, got {type(normalization).__name__}")
+    out: dict[str, Any] = {}
+    for key in NORMALIZATION_KEYS:
+        if key not in normalization:
+            raise ValueError(f"normalization is missing {key!r}")
+        value = normalization[key]
+        if isinstance(value, torch.Tensor):
+            value = value.detach().cpu().double().reshape(-1).tolist()
+        elif hasattr(value, "tolist"):
+            value = value.tolist()
+        out[key] = [float(v) for v in value] if isinstance(value, (list, tuple)) else value
+    return out
+
+
+def _check_normalization(normalization: Any, architecture: dict[str, Any], where: str) -> dict[str, Any]:
+    if not isinstance(normalization, dict):
+        raise ValueError(f"{where} must be an object with {list(NORMALIZATION_KEYS)}, got {normalization!r}")
+    dims = {"state": architecture.get("state_dim", 5), "action": architecture.get("action_dim", 2)}
+    for key in NORMALIZATION_KEYS:
+        value = normalization.get(key)
+        dim = dims[key.split("_")[0]]
+        if not isinstance(value, list) or len(value) != dim:
+            raise ValueError(f"{where}.{key} must be a list of {dim} numbers, got {value!r}")
+        for v in value:
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise ValueError(f"{where}.{key} must hold finite numbers, got {value!r}")
+        if key.endswith("_std") and any(v < 0 for v in value):
+            raise ValueError(f"{where}.{key} must be >= 0, got {value!r}")
+    return {key: normalization[key] for key in NORMALIZATION_KEYS}

@@ -1,0 +1,226 @@
+"""The Push-T demonstrations: a validated replay buffer, 12-action windows inside episodes, and z-score normalization.
+
+    replay = load_replay()                      # data/pusht_lowdim.zarr
+    states, chunks = make_windows(replay)       # [23384, 5], [23384, 12, 2] on the real data
+    norm = Normalizer.fit(replay.states, replay.actions)
+
+Window t pairs the state at frame t with the actions of frames t..t+11 of the same episode.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import zarr
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_DATASET = REPO_ROOT / "data" / "pusht_lowdim.zarr"
+STATE_DIM = 5
+ACTION_DIM = 2
+HORIZON = 12
+# Same rule as training.policies.guard_std, so training and acting normalize alike.
+MIN_STD = 1e-6
+NORMALIZER_KEYS = ("state_mean", "state_std", "action_mean", "action_std")
+
+
+class DatasetError(ValueError):
+    """The replay store is missing or malformed."""
+
+
+@dataclass(frozen=True)
+class Replay:
+    """Frames of all episodes back to back; episode e covers [episode_ends[e-1], episode_ends[e])."""
+
+    states: np.ndarray  # [N, 5] float32, env units
+    actions: np.ndarray  # [N, 2] float32, env units
+    episode_ends: np.ndarray  # [E] int64, exclusive ends, strictly increasing, last == N
+
+    @property
+    def num_episodes(self) -> int:
+        """Number of episodes."""
+        return int(len(self.episode_ends))
+
+    def episode_starts(self) -> np.ndarray:
+        """Start frame of each episode."""
+        return np.concatenate([[0], self.episode_ends[:-1]]).astype(np.int64)
+
+
+def load_replay(path: str | Path | None = None) -> Replay:
+    """Read and validate data/state, data/action and meta/episode_ends from a zarr store (default DEFAULT_DATASET)."""
+    path = Path(path) if path is not None else DEFAULT_DATASET
+    if not path.exists():
+        raise DatasetError(f"{path}: dataset not found (expected a zarr store with data/state, data/action, meta/episode_ends)")
+    if not path.is_dir():
+        raise DatasetError(f"{path}: not a zarr directory store")
+    try:
+        root = zarr.open_group(str(path), mode="r")
+    except Exception as exc:  # zarr raises several unrelated types for a bad store
+        raise DatasetError(f"{path}: not a readable zarr group: {exc}") from None
+    arrays = {name: _read_array(root, path, name) for name in ("data/state", "data/action", "meta/episode_ends")}
+    states, actions, ends = arrays["data/state"], arrays["data/action"], arrays["meta/episode_ends"]
+
+    if states.ndim != 2 or states.shape[1] != STATE_DIM:
+        raise DatasetError(f"{path}: data/state must have shape [N, {STATE_DIM}], got {list(states.shape)}")
+    if actions.ndim != 2 or actions.shape[1] != ACTION_DIM:
+        raise DatasetError(f"{path}: data/action must have shape [N, {ACTION_DIM}], got {list(actions.shape)}")
+    if len(states) != len(actions):
+        raise DatasetError(f"{path}: data/state has {len(states)} frames but data/action has {len(actions)}")
+    if len(states) == 0:
+        raise DatasetError(f"{path}: the dataset has no frames")
+    for name, values in (("data/state", states), ("data/action", actions)):
+        if not np.issubdtype(values.dtype, np.floating) and not np.issubdtype(values.dtype, np.integer):
+            raise DatasetError(f"{path}: {name} must be numeric, got dtype {values.dtype}")
+        if not np.isfinite(values.astype(np.float64)).all():
+            raise DatasetError(f"{path}: {name} contains NaN or inf")
+    if ends.ndim != 1 or len(ends) == 0:
+        raise DatasetError(f"{path}: meta/episode_ends must be a non-empty 1-D array, got shape {list(ends.shape)}")
+    if not np.issubdtype(ends.dtype, np.integer):
+        raise DatasetError(f"{path}: meta/episode_ends must be integers, got dtype {ends.dtype}")
+    ends = ends.astype(np.int64)
+    if ends[0] <= 0 or np.any(np.diff(ends) <= 0):
+        raise DatasetError(f"{path}: meta/episode_ends must be positive and strictly increasing")
+    if ends[-1] != len(states):
+        raise DatasetError(f"{path}: meta/episode_ends ends at {int(ends[-1])} but there are {len(states)} frames")
+    return Replay(states=states.astype(np.float32), actions=actions.astype(np.float32), episode_ends=ends)
+
+
+def make_windows(replay: Replay, horizon: int = HORIZON) -> tuple[np.ndarray, np.ndarray]:
+    """States [W, 5] and action chunks [W, horizon, 2]: the state at t and actions t..t+horizon-1 of one episode."""
+    starts = window_starts(replay.episode_ends, horizon)
+    chunk_index = starts[:, None] + np.arange(horizon)[None, :]
+    return replay.states[starts].copy(), replay.actions[chunk_index]
+
+
+def window_starts(episode_ends: np.ndarray, horizon: int = HORIZON) -> np.ndarray:
+    """Every frame t whose window t..t+horizon-1 lies inside its episode (episodes shorter than horizon give none)."""
+    if horizon < 1:
+        raise ValueError(f"horizon must be >= 1, got {horizon}")
+    ends = np.asarray(episode_ends, dtype=np.int64)
+    starts = np.concatenate([[0], ends[:-1]])
+    per_episode = [np.arange(s, e - horizon + 1, dtype=np.int64) for s, e in zip(starts, ends)]
+    return np.concatenate(per_episode) if per_episode else np.zeros(0, dtype=np.int64)
+
+
+@dataclass
+class Normalizer:
+    """Per-dimension z-score statistics of states and actions (std of constant dimensions taken as 1)."""
+
+    state_mean: np.ndarray
+    state_std: np.ndarray
+    action_mean: np.ndarray
+    action_std: np.ndarray
+
+    def __post_init__(self) -> None:
+        for key in NORMALIZER_KEYS:
+            value = np.asarray(getattr(self, key), dtype=np.float32).reshape(-1)
+            if not np.isfinite(value).all():
+                raise ValueError(f"normalizer {key} must be finite, got {value.tolist()}")
+            if key.endswith("_std"):
+                if np.any(value < 0):
+                    raise ValueError(f"normalizer {key} must be >= 0, got {value.tolist()}")
+                value = np.where(value < MIN_STD, np.float32(1.0), value).astype(np.float32)
+            setattr(self, key, value)
+        if self.state_mean.shape != self.state_std.shape or self.action_mean.shape != self.action_std.shape:
+            raise ValueError("normalizer means and stds must have matching lengths")
+
+    @classmethod
+    def fit(cls, states: np.ndarray, actions: np.ndarray) -> "Normalizer":
+        """Mean and population std per dimension over all given frames (states [..., 5], actions [..., 2])."""
+        states = np.asarray(states, dtype=np.float64)
+        actions = np.asarray(actions, dtype=np.float64)
+        states = states.reshape(-1, states.shape[-1])
+        actions = actions.reshape(-1, actions.shape[-1])
+        if len(states) == 0 or len(actions) == 0:
+            raise ValueError("cannot fit a normalizer on no samples")
+        return cls(states.mean(0), states.std(0), actions.mean(0), actions.std(0))
+
+    def normalize_state(self, states: Any) -> Any:
+        """(states - state_mean) / state_std for numpy arrays or torch tensors."""
+        return (states - _like(self.state_mean, states)) / _like(self.state_std, states)
+
+    def normalize_action(self, actions: Any) -> Any:
+        """(actions - action_mean) / action_std, broadcast over leading dims."""
+        return (actions - _like(self.action_mean, actions)) / _like(self.action_std, actions)
+
+    def denormalize_action(self, actions_n: Any) -> Any:
+        """actions_n * action_std + action_mean (no clipping)."""
+        return actions_n * _like(self.action_std, actions_n) + _like(self.action_mean, actions_n)
+
+    def to_dict(self) -> dict[str, list[float]]:
+        """JSON-ready lists; the checkpoint card's `normalization`."""
+        return {key: [float(v) for v in getattr(self, key)] for key in NORMALIZER_KEYS}
+
+    @classmethod
+    def from_dict(cls, data: Any) -> "Normalizer":
+        """Inverse of to_dict; ValueError naming the bad key."""
+        if not isinstance(data, dict):
+            raise ValueError(f"normalizer must be an object with {list(NORMALIZER_KEYS)}, got {type(data).__name__}")
+        values = {}
+        for key in NORMALIZER_KEYS:
+            value = data.get(key)
+            if not isinstance(value, list) or not value or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value
+            ):
+                raise ValueError(f"normalizer {key} must be a non-empty list of finite numbers, got {value!r}")
+            values[key] = np.asarray(value, dtype=np.float32)
+        return cls(**values)
+
+    def save(self, path: str | Path) -> None:
+        """Write the statistics as JSON."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Normalizer":
+        """Read statistics written by save(); ValueError naming the file on any problem."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise ValueError(f"{path}: normalizer file not found") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{path}: not a valid normalizer JSON file: {exc}") from None
+        try:
+            return cls.from_dict(data)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+
+
+def add_state_noise(states_n: Any, std: float, generator: torch.Generator | np.random.Generator | None = None) -> Any:
+    """Normalized states plus N(0, std²) noise (a torch tensor with a torch generator, or a numpy array with a numpy one)."""
+    if std < 0:
+        raise ValueError(f"noise std must be >= 0, got {std}")
+    if std == 0:
+        return states_n
+    if isinstance(states_n, torch.Tensor):
+        noise = torch.randn(states_n.shape, generator=generator, device=states_n.device, dtype=states_n.dtype)
+        return states_n + std * noise
+    rng = generator if isinstance(generator, np.random.Generator) else np.random.default_rng()
+    return states_n + np.asarray(std * rng.standard_normal(np.shape(states_n)), dtype=np.asarray(states_n).dtype)
+
+
+def _read_array(root: Any, path: Path, name: str) -> np.ndarray:
+    try:
+        array = root[name]
+    except KeyError:
+        raise DatasetError(f"{path}: missing array {name}") from None
+    if not isinstance(array, zarr.Array):
+        raise DatasetError(f"{path}: {name} is a group, expected an array")
+    try:
+        return np.asarray(array[...])
+    except Exception as exc:  # a corrupt chunk surfaces as a codec or OS error
+        raise DatasetError(f"{path}: cannot read {name}: {exc}") from None
+
+
+def _like(stats: np.ndarray, x: Any) -> Any:
+    """`stats` as the same kind of array as `x` (torch tensor on its device and dtype, or numpy)."""
+    if isinstance(x, torch.Tensor):
+        return torch.as_tensor(stats, dtype=x.dtype, device=x.device)
+    return stats

@@ -1,0 +1,201 @@
+"""Export checkpoints to ONNX: env-unit `state` [B, 5] (and flow `noise` [B, 12, 2]) in, clipped `actions` [B, 12, 2] out.
+
+    python -m training.export                          # models/mse.onnx and models/flow.onnx
+    python -m training.export --checkpoint runs/x/final --out /tmp/x.onnx
+
+Normalization, the policy (flow: its Euler steps unrolled), denormalization and clipping are all in
+the graph. Each export is checked with onnx.checker and against the torch ActingPolicy in ONNX
+Runtime, then recorded in the checkpoint's card (`onnx`) when it is written beside the card.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import logging
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, update_card
+from training.policies import ActingPolicy
+
+OPSET = 18
+NUM_STEPS = 10
+# Exported and torch actions must agree to this many pixels on random states (float32 rounding only).
+VERIFY_ATOL = 1e-3
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point: export one checkpoint or every named one in a models folder."""
+    parser = argparse.ArgumentParser(
+        prog="python -m training.export",
+        description="Export checkpoints (NAME.safetensors + NAME.json) to ONNX files with normalization and clipping inside the graph.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("--models-dir", default="models", help="folder of the checkpoints; writes MODELS_DIR/NAME.onnx for each --names")
+    parser.add_argument("--names", nargs="+", default=["mse", "flow"], help="checkpoint names inside --models-dir")
+    parser.add_argument("--checkpoint", default=None, help="export this one checkpoint stem (DIR/NAME) instead; needs --out")
+    parser.add_argument("--out", default=None, help="output .onnx path for --checkpoint (default: STEM.onnx; the card records it only if beside the card)")
+    parser.add_argument("--num-steps", type=int, default=NUM_STEPS, help="flow: Euler steps unrolled into the graph")
+    parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
+    args = parser.parse_args(argv)
+
+    if args.checkpoint is not None:
+        jobs = [(checkpoint_stem(args.checkpoint), Path(args.out) if args.out else checkpoint_stem(args.checkpoint).with_suffix(".onnx"))]
+    else:
+        if args.out is not None:
+            parser.error("--out needs --checkpoint")
+        jobs = [(Path(args.models_dir) / name, Path(args.models_dir) / f"{name}.onnx") for name in args.names]
+    status = 0
+    for stem, out in jobs:
+        try:
+            info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset)
+        except (CheckpointError, ValueError, OSError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            status = 2
+            continue
+        note = "card updated" if info["card_updated"] else "not beside the card: card left unchanged"
+        print(f"{stem} -> {out} (inputs {info['inputs']}, outputs {info['outputs']}, opset {info['opset']}, max diff {info['max_abs_diff']:.2e} px; {note})")
+    return status
+
+
+def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int = NUM_STEPS, opset: int = OPSET) -> dict[str, Any]:
+    """Export checkpoint `stem` to `out_path` (default STEM.onnx) and verify it; returns the onnx info (plus max_abs_diff).
+
+    The card records the export only when the file lies beside it, where the service looks for it;
+    an export elsewhere leaves the card as it was.
+    """
+    if opset < 17:
+        raise ValueError(f"opset must be >= 17, got {opset}")
+    if num_steps < 1:
+        raise ValueError(f"num_steps must be >= 1, got {num_steps}")
+    stem = checkpoint_stem(stem)
+    out = Path(out_path) if out_path is not None else stem.with_suffix(".onnx")
+    if out.suffix != ".onnx":
+        raise ValueError(f"{out}: the output file must end in .onnx")
+    acting = load_acting_policy(stem, num_steps=num_steps).eval()
+    graph = _GraphModule(acting).eval()
+    inputs = ["state", "noise"] if acting.kind == "flow" else ["state"]
+    example = _example_inputs(acting.kind, batch=4, seed=0)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp.onnx")
+    try:
+        try:
+            _torch_export(graph, example, inputs, tmp, opset)
+        except Exception as exc:  # torch.export / onnxscript raise their own error types
+            raise ValueError(f"{stem}: ONNX export failed: {type(exc).__name__}: {exc}") from exc
+        max_diff = verify_onnx(tmp, acting)
+        opset = _model_opset(tmp)  # the exporter may raise a requested opset; record what the file has
+        tmp.replace(out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    info = {
+        "file": out.name,
+        "inputs": inputs,
+        "outputs": ["actions"],
+        "num_steps": num_steps,  # meaningful for flow only; recorded for both so every card reads the same
+        "opset": opset,
+    }
+    beside_card = out.resolve().parent == stem.resolve().parent
+    if beside_card:
+        update_card(stem, onnx=info)
+    return dict(info, max_abs_diff=max_diff, card_updated=beside_card)
+
+
+def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...] = (1, 37)) -> float:
+    """Check the ONNX file (onnx.checker, names, dtypes) and its agreement with `acting` in ONNX Runtime; returns the max |diff| in px."""
+    import onnx
+    import onnxruntime as ort
+
+    path = Path(path)
+    model = onnx.load(str(path))
+    try:
+        onnx.checker.check_model(model, full_check=True)
+    except onnx.checker.ValidationError as exc:
+        raise ValueError(f"{path}: invalid ONNX model: {exc}") from None
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    expected_inputs = ["state", "noise"] if acting.kind == "flow" else ["state"]
+    names = [i.name for i in session.get_inputs()]
+    if names != expected_inputs or [o.name for o in session.get_outputs()] != ["actions"]:
+        raise ValueError(f"{path}: inputs {names} / outputs {[o.name for o in session.get_outputs()]}, expected {expected_inputs} / ['actions']")
+    worst = 0.0
+    for i, batch in enumerate(batches):
+        example = _example_inputs(acting.kind, batch=batch, seed=1000 + i)
+        with torch.inference_mode():
+            want = acting(*example).numpy()
+        got = session.run(["actions"], {name: t.numpy() for name, t in zip(expected_inputs, example)})[0]
+        if got.dtype != np.float32 or got.shape != want.shape:
+            raise ValueError(f"{path}: output {got.dtype} {list(got.shape)}, expected float32 {list(want.shape)}")
+        worst = max(worst, float(np.abs(got - want).max()))
+    if worst > VERIFY_ATOL:
+        raise ValueError(f"{path}: ONNX Runtime and torch differ by {worst:.3g} px (> {VERIFY_ATOL})")
+    return worst
+
+
+def _model_opset(path: Path) -> int:
+    import onnx
+
+    model = onnx.load(str(path), load_external_data=False)
+    return next(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
+
+
+class _GraphModule(torch.nn.Module):
+    """The exported signature: forward(state) for MSE, forward(state, noise) for flow."""
+
+    def __init__(self, acting: ActingPolicy) -> None:
+        super().__init__()
+        self.acting = acting
+
+    def forward(self, state: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        return self.acting(state, noise) if noise is not None else self.acting(state)
+
+
+def _example_inputs(kind: str, batch: int, seed: int) -> tuple[torch.Tensor, ...]:
+    """Env-unit states spread over the arena (angles in [0, 2π)) and, for flow, standard-normal noise."""
+    gen = torch.Generator().manual_seed(seed)
+    state = torch.rand(batch, 5, generator=gen) * torch.tensor([512.0, 512.0, 512.0, 512.0, 2 * np.pi])
+    if kind == "flow":
+        return state, torch.randn(batch, 12, 2, generator=gen)
+    return (state,)
+
+
+def _torch_export(graph: torch.nn.Module, example: tuple[torch.Tensor, ...], inputs: list[str], path: Path, opset: int) -> None:
+    """torch.onnx.export with the dynamo exporter, a dynamic batch dimension and the weights inside the one file."""
+    batch = torch.export.Dim("batch", min=1, max=1 << 20)
+    dynamic = {name: {0: batch} for name in inputs}
+    # The exporter logs and warns a lot (missing torchvision, deprecations): keep stderr for real errors.
+    loggers = [logging.getLogger(n) for n in ("torch.onnx", "torch.export", "torch._dynamo", "onnxscript")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):
+            warnings.simplefilter("ignore")
+            torch.onnx.export(
+                graph,
+                example,
+                str(path),
+                input_names=inputs,
+                output_names=["actions"],
+                dynamic_shapes=dynamic,
+                opset_version=opset,
+                dynamo=True,
+                external_data=False,
+                optimize=True,
+                verbose=False,
+            )
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
