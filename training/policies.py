@@ -29,7 +29,19 @@ ACTION_LOW = 0.0
 ACTION_HIGH = 512.0
 # A normalization std below this is treated as 1 (a constant dimension), so nothing divides by ~0.
 MIN_STD = 1e-6
-ARCH_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
+ANGLE_ENCODINGS = ("raw", "sincos")
+TIME_EMBEDDINGS = ("scalar", "sinusoidal")
+DEFAULT_TIME_EMBEDDING_DIM = 32
+# Angular frequencies (rad per unit t) of the sinusoidal time embedding: slow enough to stay monotonic
+# over t in [0, 1], fast enough to separate nearby Euler steps.
+TIME_FREQ_MIN, TIME_FREQ_MAX = 1.0, 1000.0
+_BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
+MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip")
+FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim")
+ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
+# Variant keys and their defaults; the `architecture` dict lists a variant key only when it differs,
+# so cards of the default architectures stay exactly as they were.
+_VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "time_embedding": "scalar", "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM}
 
 
 @runtime_checkable
@@ -58,7 +70,7 @@ def build_policy(kind: str, **architecture: Any) -> "MSEPolicy | FlowPolicy":
     if kind not in classes:
         raise ValueError(f"unknown policy kind {kind!r}; expected one of {POLICY_KINDS}")
     cls = classes[kind]
-    allowed = set(ARCH_KEYS)
+    allowed = set(MSE_ARCH_KEYS if kind == "mse" else FLOW_ARCH_KEYS)
     unknown = sorted(set(architecture) - allowed)
     if unknown:
         raise ValueError(f"unknown {kind} architecture keys {unknown}; expected a subset of {sorted(allowed)}")
@@ -70,7 +82,62 @@ def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters() if p.requires_grad)
 
 
-class MSEPolicy(nn.Module):
+class _StateEncoding(nn.Module):
+    """Shared by both policies: the optional sin/cos angle encoding and its input statistics."""
+
+    state_dim: int
+
+    def _init_state_encoding(self, angle_encoding: str) -> int:
+        """Set up the encoding; returns the encoded state width."""
+        self.angle_encoding = angle_encoding
+        if angle_encoding == "raw":
+            return self.state_dim
+        # The model sees z-scored states; sin/cos need the raw angle, so the policy keeps the angle
+        # channel's statistics as (persistent) buffers that checkpoints carry. NaN until
+        # set_input_normalization: a forgotten call fails loudly instead of training on sin(z).
+        self.register_buffer("angle_mean", torch.full((1,), float("nan")))
+        self.register_buffer("angle_std", torch.full((1,), float("nan")))
+        return self.state_dim + 1
+
+    def set_input_normalization(self, state_mean: Any, state_std: Any) -> None:
+        """Record the state normalization the inputs went through (needed by angle_encoding="sincos"; a no-op for "raw")."""
+        mean = torch.as_tensor(state_mean, dtype=torch.float32).detach().reshape(-1)
+        std = guard_std(torch.as_tensor(state_std, dtype=torch.float32).detach().reshape(-1))
+        if mean.numel() != self.state_dim or std.numel() != self.state_dim:
+            raise ValueError(f"state_mean and state_std must have {self.state_dim} values, got {mean.numel()} and {std.numel()}")
+        if not (torch.isfinite(mean).all() and torch.isfinite(std).all()):
+            raise ValueError(f"state normalization must be finite, got {mean.tolist()} / {std.tolist()}")
+        if self.angle_encoding == "sincos":
+            self.angle_mean.copy_(mean[-1:])
+            self.angle_std.copy_(std[-1:])
+
+    def check_input_normalization(self, state_mean: Any | None = None, state_std: Any | None = None) -> None:
+        """Raise ValueError if a sincos policy lacks its normalization, or (when given) it differs from these statistics."""
+        if self.angle_encoding != "sincos":
+            return
+        if not (torch.isfinite(self.angle_mean).all() and torch.isfinite(self.angle_std).all()):
+            raise ValueError(
+                'angle_encoding="sincos" needs the state normalization: call policy.set_input_normalization(state_mean, state_std)'
+            )
+        if state_mean is None or state_std is None:
+            return
+        mean = torch.as_tensor(state_mean, dtype=torch.float32).reshape(-1)[-1:]
+        std = guard_std(torch.as_tensor(state_std, dtype=torch.float32).reshape(-1))[-1:]
+        if not (torch.allclose(mean, self.angle_mean, rtol=1e-5, atol=1e-6) and torch.allclose(std, self.angle_std, rtol=1e-5, atol=1e-6)):
+            raise ValueError(
+                f"the policy's angle normalization (mean {self.angle_mean.item()}, std {self.angle_std.item()}) differs from the "
+                f"given state normalization (mean {mean.item()}, std {std.item()})"
+            )
+
+    def encode_state(self, state: torch.Tensor) -> torch.Tensor:
+        """The network's view of normalized states [B, S]: unchanged ("raw"), or the angle (last channel) as sin, cos of the raw angle."""
+        if self.angle_encoding == "raw":
+            return state
+        angle = state[:, -1:] * self.angle_std + self.angle_mean
+        return torch.cat([state[:, :-1], torch.sin(angle), torch.cos(angle)], dim=1)
+
+
+class MSEPolicy(_StateEncoding):
     """An MLP from state to a whole action chunk, trained by mean squared error on normalized actions."""
 
     kind = "mse"
@@ -82,23 +149,34 @@ class MSEPolicy(nn.Module):
         horizon: int = HORIZON,
         action_dim: int = ACTION_DIM,
         state_dim: int = STATE_DIM,
+        angle_encoding: str = "raw",
+        state_skip: bool = False,
     ) -> None:
         super().__init__()
         self._arch = _check_architecture(hidden_dims, dropout, horizon, action_dim, state_dim)
+        self._arch.update(_check_variants(angle_encoding=angle_encoding, state_skip=state_skip))
         self.horizon, self.action_dim, self.state_dim = horizon, action_dim, state_dim
-        self.net = mlp(state_dim, self._arch["hidden_dims"], horizon * action_dim, dropout)
+        encoded_dim = self._init_state_encoding(angle_encoding)
+        self.state_skip = state_skip
+        if state_skip:
+            self.net = StateSkipMLP(encoded_dim, encoded_dim, self._arch["hidden_dims"], horizon * action_dim, dropout)
+        else:
+            self.net = mlp(encoded_dim, self._arch["hidden_dims"], horizon * action_dim, dropout)
 
     @property
     def architecture(self) -> dict[str, Any]:
         """The constructor kwargs (JSON-ready)."""
-        return dict(self._arch, hidden_dims=list(self._arch["hidden_dims"]))
+        return _architecture_dict(self._arch)
 
     def forward(self, state: torch.Tensor) -> torch.Tensor:
         """The predicted chunk [B, H, A] of normalized states [B, S]."""
-        return self.net(state).reshape(-1, self.horizon, self.action_dim)
+        encoded = self.encode_state(state)
+        out = self.net(encoded, encoded) if self.state_skip else self.net(encoded)
+        return out.reshape(-1, self.horizon, self.action_dim)
 
     def compute_loss(self, state: torch.Tensor, action_chunk: torch.Tensor) -> torch.Tensor:
         """Mean squared error between the predicted and the demonstrated normalized chunk."""
+        self.check_input_normalization()
         return F.mse_loss(self(state), action_chunk)
 
     def sample_actions(self, state: torch.Tensor, noise: torch.Tensor | None = None, num_steps: int = DEFAULT_NUM_STEPS) -> torch.Tensor:
@@ -106,7 +184,7 @@ class MSEPolicy(nn.Module):
         return self(state)
 
 
-class FlowPolicy(nn.Module):
+class FlowPolicy(_StateEncoding):
     """Straight-line conditional flow matching: an MLP of (state, noisy chunk, t) predicts the velocity x1 - x0."""
 
     kind = "flow"
@@ -118,26 +196,56 @@ class FlowPolicy(nn.Module):
         horizon: int = HORIZON,
         action_dim: int = ACTION_DIM,
         state_dim: int = STATE_DIM,
+        angle_encoding: str = "raw",
+        state_skip: bool = False,
+        time_embedding: str = "scalar",
+        time_embedding_dim: int = DEFAULT_TIME_EMBEDDING_DIM,
     ) -> None:
         super().__init__()
         self._arch = _check_architecture(hidden_dims, dropout, horizon, action_dim, state_dim)
+        self._arch.update(
+            _check_variants(
+                angle_encoding=angle_encoding, state_skip=state_skip, time_embedding=time_embedding, time_embedding_dim=time_embedding_dim
+            )
+        )
         self.horizon, self.action_dim, self.state_dim = horizon, action_dim, state_dim
+        encoded_dim = self._init_state_encoding(angle_encoding)
+        self.state_skip = state_skip
+        self.time_embedding = time_embedding
+        if time_embedding == "sinusoidal":
+            freqs = torch.exp(torch.linspace(math.log(TIME_FREQ_MIN), math.log(TIME_FREQ_MAX), time_embedding_dim // 2))
+            # not persistent: it follows from the architecture, so checkpoints need not carry it
+            self.register_buffer("time_freqs", freqs, persistent=False)
+            time_dim = time_embedding_dim
+        else:
+            time_dim = 1
         chunk_dim = horizon * action_dim
-        self.net = mlp(state_dim + chunk_dim + 1, self._arch["hidden_dims"], chunk_dim, dropout)
+        in_dim = encoded_dim + chunk_dim + time_dim
+        if state_skip:
+            self.net = StateSkipMLP(in_dim, encoded_dim, self._arch["hidden_dims"], chunk_dim, dropout)
+        else:
+            self.net = mlp(in_dim, self._arch["hidden_dims"], chunk_dim, dropout)
 
     @property
     def architecture(self) -> dict[str, Any]:
         """The constructor kwargs (JSON-ready)."""
-        return dict(self._arch, hidden_dims=list(self._arch["hidden_dims"]))
+        return _architecture_dict(self._arch)
 
     def forward(self, state: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """Velocity [B, H, A] at noisy chunks x_t [B, H, A] and times t [B] or [B, 1], given states [B, S]."""
         batch = state.shape[0]
-        inputs = torch.cat([state, x_t.reshape(batch, -1), t.reshape(batch, 1).to(state.dtype)], dim=1)
-        return self.net(inputs).reshape(batch, self.horizon, self.action_dim)
+        encoded = self.encode_state(state)
+        t = t.reshape(batch, 1).to(state.dtype)
+        if self.time_embedding == "sinusoidal":
+            angles = t * self.time_freqs
+            t = torch.cat([torch.sin(angles), torch.cos(angles)], dim=1)
+        inputs = torch.cat([encoded, x_t.reshape(batch, -1), t], dim=1)
+        out = self.net(inputs, encoded) if self.state_skip else self.net(inputs)
+        return out.reshape(batch, self.horizon, self.action_dim)
 
     def compute_loss(self, state: torch.Tensor, action_chunk: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """Flow-matching loss: x_t = (1 - t) x0 + t x1 with x0 ~ N(0, I), t ~ U[0, 1]; target x1 - x0."""
+        self.check_input_normalization()
         x1 = action_chunk
         x0 = torch.randn(x1.shape, generator=generator, device=x1.device, dtype=x1.dtype)
         t = torch.rand((x1.shape[0], 1, 1), generator=generator, device=x1.device, dtype=x1.dtype)
@@ -182,6 +290,7 @@ class ActingPolicy(nn.Module):
         num_steps: int = DEFAULT_NUM_STEPS,
     ) -> None:
         super().__init__()
+        policy.check_input_normalization(state_mean, state_std)
         self.policy = policy
         self.kind = policy.kind
         self.num_steps = num_steps
@@ -231,6 +340,53 @@ def mlp(in_dim: int, hidden_dims: Sequence[int], out_dim: int, dropout: float) -
         prev = width
     layers.append(nn.Linear(prev, out_dim))
     return nn.Sequential(*layers)
+
+
+class StateSkipMLP(nn.Module):
+    """Like `mlp`, but the conditioning `cond` [B, C] is concatenated again to the input of every hidden layer after the first and of the output layer."""
+
+    def __init__(self, in_dim: int, cond_dim: int, hidden_dims: Sequence[int], out_dim: int, dropout: float) -> None:
+        super().__init__()
+        self.hidden = nn.ModuleList()
+        prev = in_dim
+        for i, width in enumerate(hidden_dims):
+            self.hidden.append(nn.Linear(prev + (cond_dim if i else 0), width))
+            prev = width
+        self.out = nn.Linear(prev + cond_dim, out_dim)
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, cond: torch.Tensor) -> torch.Tensor:
+        """Outputs [B, out_dim] of inputs [B, in_dim] and conditioning [B, cond_dim]."""
+        h = x
+        for i, layer in enumerate(self.hidden):
+            if i:
+                h = torch.cat([h, cond], dim=1)
+            h = self.dropout(F.relu(layer(h)))
+        return self.out(torch.cat([h, cond], dim=1))
+
+
+def _architecture_dict(arch: dict[str, Any]) -> dict[str, Any]:
+    """JSON-ready kwargs: the base keys always, a variant key only where it differs from its default."""
+    out = {k: v for k, v in arch.items() if k not in _VARIANT_DEFAULTS or v != _VARIANT_DEFAULTS[k]}
+    out["hidden_dims"] = list(arch["hidden_dims"])
+    return out
+
+
+def _check_variants(**variants: Any) -> dict[str, Any]:
+    """Validated variant kwargs (angle_encoding, state_skip, time_embedding, time_embedding_dim), or a ValueError naming the bad one."""
+    if "angle_encoding" in variants and variants["angle_encoding"] not in ANGLE_ENCODINGS:
+        raise ValueError(f"angle_encoding must be one of {ANGLE_ENCODINGS}, got {variants['angle_encoding']!r}")
+    if "state_skip" in variants and not isinstance(variants["state_skip"], bool):
+        raise ValueError(f"state_skip must be true or false, got {variants['state_skip']!r}")
+    if "time_embedding" in variants:
+        if variants["time_embedding"] not in TIME_EMBEDDINGS:
+            raise ValueError(f"time_embedding must be one of {TIME_EMBEDDINGS}, got {variants['time_embedding']!r}")
+        dim = variants["time_embedding_dim"]
+        if isinstance(dim, bool) or not isinstance(dim, int) or dim < 2 or dim % 2:
+            raise ValueError(f"time_embedding_dim must be an even int >= 2, got {dim!r}")
+        if variants["time_embedding"] == "scalar" and dim != DEFAULT_TIME_EMBEDDING_DIM:
+            raise ValueError('time_embedding_dim applies only to time_embedding="sinusoidal"')
+    return variants
 
 
 def _check_architecture(hidden_dims: Sequence[int], dropout: float, horizon: int, action_dim: int, state_dim: int) -> dict[str, Any]:

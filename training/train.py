@@ -80,6 +80,8 @@ def train(cfg: TrainConfig) -> Path:
 
         architecture = {"dropout": cfg.dropout, **cfg.architecture_overrides()}
         policy = build_policy(cfg.policy, **architecture)
+        # sin/cos angle encoding needs the raw angle back from the normalized state; a no-op otherwise
+        policy.set_input_normalization(normalizer.state_mean, normalizer.state_std)
         policy.train()
         model: nn.Module = _LossModule(policy)
         if ctx.world_size > 1:

@@ -1,0 +1,230 @@
+"""The committed low-dimensional dataset, windows inside episodes, normalization, and clear dataset errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import zarr
+
+from training import policies
+from training.data import (
+    DEFAULT_DATASET,
+    DatasetError,
+    Normalizer,
+    Replay,
+    add_state_noise,
+    load_replay,
+    make_windows,
+    window_starts,
+)
+
+REPO = Path(__file__).resolve().parent.parent
+FULL_DATASET = REPO.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr"
+LOWDIM_ARRAYS = ("data/state", "data/action", "data/keypoint", "data/n_contacts", "meta/episode_ends")
+
+
+@pytest.fixture(scope="module")
+def replay() -> Replay:
+    return load_replay()
+
+
+def test_default_dataset_shapes(replay: Replay) -> None:
+    assert DEFAULT_DATASET == REPO / "data" / "pusht_lowdim.zarr"
+    assert replay.states.shape == (25650, 5) and replay.states.dtype == np.float32
+    assert replay.actions.shape == (25650, 2) and replay.actions.dtype == np.float32
+    assert replay.episode_ends.shape == (206,) and replay.episode_ends.dtype == np.int64
+    assert replay.episode_ends[-1] == 25650
+
+
+def test_windows_on_the_real_data(replay: Replay) -> None:
+    states, chunks = make_windows(replay)
+    assert states.shape == (23384, 5) and chunks.shape == (23384, 12, 2)
+    assert states.dtype == np.float32 and chunks.dtype == np.float32
+    starts = window_starts(replay.episode_ends)
+    np.testing.assert_array_equal(states, replay.states[starts])
+    for w in (0, 1, 5000, 23383):
+        np.testing.assert_array_equal(chunks[w], replay.actions[starts[w] : starts[w] + 12])
+
+
+def test_windows_never_cross_episode_ends(replay: Replay) -> None:
+    starts = window_starts(replay.episode_ends)
+    episode_of_first = np.searchsorted(replay.episode_ends, starts, side="right")
+    episode_of_last = np.searchsorted(replay.episode_ends, starts + 11, side="right")
+    np.testing.assert_array_equal(episode_of_first, episode_of_last)
+    # and every frame that can start a window does: per episode, length - 11 windows
+    lengths = np.diff(np.concatenate([[0], replay.episode_ends]))
+    np.testing.assert_array_equal(np.bincount(episode_of_first, minlength=206), lengths - 11)
+
+
+def test_short_episodes_give_no_windows() -> None:
+    replay = Replay(np.zeros((10, 5), np.float32), np.arange(20, dtype=np.float32).reshape(10, 2), np.array([3, 10]))
+    states, chunks = make_windows(replay, horizon=4)
+    assert len(states) == 4  # episode 1 (3 frames) none; episode 2 (7 frames) four
+    np.testing.assert_array_equal(chunks[0], replay.actions[3:7])
+
+
+def test_normalizer_statistics(replay: Replay) -> None:
+    norm = Normalizer.fit(replay.states, replay.actions)
+    np.testing.assert_allclose(norm.state_mean, replay.states.astype(np.float64).mean(0), rtol=1e-6)
+    np.testing.assert_allclose(norm.action_std, replay.actions.astype(np.float64).std(0), rtol=1e-6)
+    states_n = norm.normalize_state(replay.states)
+    np.testing.assert_allclose(states_n.mean(0), 0, atol=1e-4)
+    np.testing.assert_allclose(states_n.std(0), 1, atol=1e-4)
+    chunk = replay.actions[:12]
+    np.testing.assert_allclose(norm.denormalize_action(norm.normalize_action(chunk)), chunk, atol=1e-4)
+
+
+def test_normalizer_matches_acting_policy(replay: Replay) -> None:
+    """Training normalizes with Normalizer, acting with the card's statistics: both must agree."""
+    assert policies.MIN_STD == pytest.approx(1e-6)
+    norm = Normalizer.fit(replay.states, replay.actions)
+    acting = policies.ActingPolicy(policies.MSEPolicy(), **norm.to_dict())
+    state = torch.from_numpy(replay.states[:7])
+    torch.testing.assert_close((state - acting.state_mean) / acting.state_std, norm.normalize_state(state))
+
+
+def test_normalizer_guards_constant_dimensions() -> None:
+    states = np.ones((4, 5), np.float32)
+    norm = Normalizer.fit(states, np.zeros((4, 2)))
+    assert np.all(norm.state_std == 1.0) and np.all(norm.action_std == 1.0)
+    assert np.all(np.isfinite(norm.normalize_state(states)))
+
+
+def test_normalizer_json_round_trip(tmp_path: Path, replay: Replay) -> None:
+    norm = Normalizer.fit(replay.states, replay.actions)
+    path = tmp_path / "norm.json"
+    norm.save(path)
+    loaded = Normalizer.load(path)
+    for key in ("state_mean", "state_std", "action_mean", "action_std"):
+        np.testing.assert_array_equal(getattr(loaded, key), getattr(norm, key))
+    assert Normalizer.from_dict(norm.to_dict()).to_dict() == norm.to_dict()
+
+
+def test_normalizer_file_errors_name_the_file(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"missing\.json: normalizer file not found"):
+        Normalizer.load(tmp_path / "missing.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match=r"bad\.json: not a valid normalizer JSON"):
+        Normalizer.load(bad)
+    bad.write_text('{"state_mean": [1.0], "state_std": [1.0], "action_mean": [1.0]}')
+    with pytest.raises(ValueError, match=r"bad\.json: normalizer action_std must be"):
+        Normalizer.load(bad)
+
+
+def test_add_state_noise() -> None:
+    states = torch.zeros(20000, 5)
+    noisy = add_state_noise(states, 0.05, torch.Generator().manual_seed(0))
+    assert abs(float(noisy.std()) - 0.05) < 0.002
+    again = add_state_noise(states, 0.05, torch.Generator().manual_seed(0))
+    assert torch.equal(noisy, again)
+    assert add_state_noise(states, 0.0) is states
+    noisy_np = add_state_noise(np.zeros((1000, 5), np.float32), 0.1, np.random.default_rng(0))
+    assert noisy_np.dtype == np.float32 and 0.09 < noisy_np.std() < 0.11
+    with pytest.raises(ValueError, match="noise std must be >= 0"):
+        add_state_noise(states, -1.0)
+
+
+# --- the committed copy and its provenance ---
+
+
+@pytest.mark.skipif(not FULL_DATASET.is_dir(), reason=f"full dataset not present at {FULL_DATASET}")
+def test_lowdim_copy_equals_the_full_dataset() -> None:
+    full = zarr.open_group(str(FULL_DATASET), mode="r")
+    copy = zarr.open_group(str(DEFAULT_DATASET), mode="r")
+    for name in LOWDIM_ARRAYS:
+        a, b = np.asarray(full[name][...]), np.asarray(copy[name][...])
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        assert a.tobytes() == b.tobytes(), name
+    assert "img" not in copy["data"]
+
+
+def test_lowdim_copy_is_small() -> None:
+    files = [f for f in DEFAULT_DATASET.rglob("*") if f.is_file()]
+    assert sum(f.stat().st_size for f in files) < 2_000_000 and len(files) <= 20
+
+
+def test_make_lowdim_dataset_help() -> None:
+    result = subprocess.run([sys.executable, "scripts/make_lowdim_dataset.py", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and "--src" in result.stdout and "--out" in result.stdout
+
+
+# --- malformed stores: each error names the path and the problem ---
+
+
+def _store(path: Path, states=None, actions=None, ends=None, skip: tuple[str, ...] = ()) -> Path:
+    """A small zarr replay (2 episodes, 30 frames), with parts replaced or left out."""
+    root = zarr.open_group(str(path), mode="w")
+    arrays = {
+        "data/state": np.zeros((30, 5), np.float32) if states is None else states,
+        "data/action": np.zeros((30, 2), np.float32) if actions is None else actions,
+        "meta/episode_ends": np.array([14, 30], np.int64) if ends is None else ends,
+    }
+    for name, values in arrays.items():
+        if name not in skip:
+            root.create_dataset(name, data=values)
+    return path
+
+
+def test_valid_small_store(tmp_path: Path) -> None:
+    replay = load_replay(_store(tmp_path / "ok.zarr"))
+    assert replay.num_episodes == 2 and len(make_windows(replay)[0]) == 30 - 2 * 11
+
+
+def test_missing_path(tmp_path: Path) -> None:
+    with pytest.raises(DatasetError, match=r"nowhere\.zarr: dataset not found"):
+        load_replay(tmp_path / "nowhere.zarr")
+
+
+def test_path_is_a_file(tmp_path: Path) -> None:
+    path = tmp_path / "file.zarr"
+    path.write_text("hello")
+    with pytest.raises(DatasetError, match=r"file\.zarr: not a zarr directory store"):
+        load_replay(path)
+
+
+def test_empty_directory(tmp_path: Path) -> None:
+    path = tmp_path / "empty.zarr"
+    path.mkdir()
+    with pytest.raises(DatasetError, match=r"empty\.zarr: not a readable zarr group"):
+        load_replay(path)
+
+
+@pytest.mark.parametrize("name", ["data/state", "data/action", "meta/episode_ends"])
+def test_missing_array(tmp_path: Path, name: str) -> None:
+    path = _store(tmp_path / "m.zarr", skip=(name,))
+    with pytest.raises(DatasetError, match=rf"m\.zarr: missing array {name}"):
+        load_replay(path)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"states": np.zeros((30, 4), np.float32)}, r"data/state must have shape \[N, 5\], got \[30, 4\]"),
+        ({"actions": np.zeros((30, 2, 1), np.float32)}, r"data/action must have shape \[N, 2\]"),
+        ({"actions": np.zeros((29, 2), np.float32)}, "data/state has 30 frames but data/action has 29"),
+        ({"ends": np.array([20, 14, 30])}, "meta/episode_ends must be positive and strictly increasing"),
+        ({"ends": np.array([14, 14, 30])}, "meta/episode_ends must be positive and strictly increasing"),
+        ({"ends": np.array([14, 28])}, "meta/episode_ends ends at 28 but there are 30 frames"),
+        ({"ends": np.array([14.0, 30.0])}, "meta/episode_ends must be integers"),
+        ({"ends": np.zeros((0,), np.int64)}, "meta/episode_ends must be a non-empty 1-D array"),
+        ({"states": np.full((30, 5), np.nan, np.float32)}, "data/state contains NaN or inf"),
+    ],
+)
+def test_malformed_store(tmp_path: Path, kwargs: dict, message: str) -> None:
+    path = _store(tmp_path / "bad.zarr", **kwargs)
+    with pytest.raises(DatasetError, match=rf"bad\.zarr: {message}"):
+        load_replay(path)
+
+
+def test_corrupt_chunk(tmp_path: Path) -> None:
+    path = _store(tmp_path / "c.zarr")
+    for chunk in (path / "data" / "state").glob("[0-9]*"):
+        chunk.write_bytes(b"not blosc at all")
+    with pytest.raises(DatasetError, match=r"c\.zarr: cannot read data/state"):
+        load_replay(path)

@@ -1,0 +1,143 @@
+"""ONNX export: the graph acts like the torch ActingPolicy, with the contract's names, dtypes and a dynamic batch."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from training.checkpoint import CheckpointError, load_acting_policy, load_card, save_checkpoint
+from training.data import Normalizer, load_replay
+from training.export import export_onnx, main
+from training.policies import build_policy
+
+KINDS = ["mse", "flow"]
+REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="module")
+def replay():
+    return load_replay()
+
+
+@pytest.fixture(scope="module", params=KINDS)
+def exported(request, tmp_path_factory, replay) -> tuple[str, Path, Path]:
+    """A random-weight policy with the real normalizer, saved and exported; its first action is pushed out of the arena."""
+    kind = request.param
+    torch.manual_seed(0)
+    policy = build_policy(kind)
+    with torch.no_grad():
+        # step 0 of every chunk far outside [0, 512] (x high, y low), so the graph's clipping is exercised
+        last = policy.net[-1]
+        last.bias[0] += 20.0
+        last.bias[1] -= 20.0
+    norm = Normalizer.fit(replay.states, replay.actions)
+    stem = tmp_path_factory.mktemp(kind) / kind
+    save_checkpoint(stem, policy, norm.to_dict())
+    out = stem.with_suffix(".onnx")
+    export_onnx(stem, out)
+    return kind, stem, out
+
+
+def _inputs(kind: str, replay, batch: int, seed: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    feeds = {"state": replay.states[rng.choice(len(replay.states), batch, replace=False)].astype(np.float32)}
+    if kind == "flow":
+        feeds["noise"] = rng.standard_normal((batch, 12, 2)).astype(np.float32)
+    return feeds
+
+
+@pytest.mark.parametrize("batch", [1, 37])
+def test_onnx_matches_torch(exported, replay, batch: int) -> None:
+    kind, stem, out = exported
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    feeds = _inputs(kind, replay, batch, seed=batch)
+    got = session.run(["actions"], feeds)[0]
+    acting = load_acting_policy(stem)
+    with torch.inference_mode():
+        want = acting(*(torch.from_numpy(feeds[name]) for name in ("state", "noise") if name in feeds)).numpy()
+    assert got.dtype == np.float32 and got.shape == (batch, 12, 2)
+    assert np.abs(got - want).max() < 1e-3
+    # clipping happens inside the graph
+    assert np.all(got[:, 0, 0] == 512.0) and np.all(got[:, 0, 1] == 0.0)
+    assert got.min() >= 0.0 and got.max() <= 512.0
+
+
+def test_onnx_signature(exported) -> None:
+    kind, _, out = exported
+    model = onnx.load(str(out))
+    onnx.checker.check_model(model, full_check=True)
+    assert next(o.version for o in model.opset_import if o.domain in ("", "ai.onnx")) >= 17
+    assert not any(t.data_location == onnx.TensorProto.EXTERNAL for t in model.graph.initializer)
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    inputs = {i.name: i for i in session.get_inputs()}
+    assert list(inputs) == (["state", "noise"] if kind == "flow" else ["state"])
+    assert inputs["state"].type == "tensor(float)" and inputs["state"].shape[1:] == [5]
+    assert isinstance(inputs["state"].shape[0], str)  # symbolic: any batch
+    if kind == "flow":
+        assert inputs["noise"].type == "tensor(float)" and inputs["noise"].shape[1:] == [12, 2]
+        assert inputs["noise"].shape[0] == inputs["state"].shape[0]
+    (output,) = session.get_outputs()
+    assert output.name == "actions" and output.type == "tensor(float)" and output.shape[1:] == [12, 2]
+
+
+def test_card_records_the_export(exported) -> None:
+    kind, stem, out = exported
+    card = load_card(stem)
+    assert card["onnx"] == {
+        "file": out.name,
+        "inputs": ["state", "noise"] if kind == "flow" else ["state"],
+        "outputs": ["actions"],
+        "num_steps": 10,
+        "opset": card["onnx"]["opset"],
+    }
+    model = onnx.load(str(out))
+    assert card["onnx"]["opset"] == next(o.version for o in model.opset_import if o.domain in ("", "ai.onnx")) >= 17
+
+
+def test_onnx_is_deterministic_and_flow_follows_its_noise(exported, replay) -> None:
+    kind, _, out = exported
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    feeds = _inputs(kind, replay, 8, seed=0)
+    first = session.run(["actions"], feeds)[0]
+    assert np.array_equal(first, session.run(["actions"], feeds)[0])
+    if kind == "flow":
+        feeds["noise"] = feeds["noise"] + 1.0
+        assert not np.allclose(first[:, 1:], session.run(["actions"], feeds)[0][:, 1:])
+
+
+def test_export_of_a_missing_checkpoint_names_it(tmp_path: Path) -> None:
+    with pytest.raises(CheckpointError, match=r"ghost\.json: checkpoint card not found"):
+        export_onnx(tmp_path / "ghost")
+    assert main(["--models-dir", str(tmp_path), "--names", "ghost"]) == 2
+
+
+def test_cli_help() -> None:
+    result = subprocess.run([sys.executable, "-m", "training.export", "--help"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and "--models-dir" in result.stdout and "--checkpoint" in result.stdout
+
+
+@pytest.mark.slow
+def test_cli_exports_a_models_folder(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    norm = {"state_mean": [256.0] * 5, "state_std": [100.0] * 5, "action_mean": [256.0] * 2, "action_std": [100.0] * 2}
+    save_checkpoint(tmp_path / "mse", build_policy("mse", hidden_dims=[32]), norm)
+    assert main(["--models-dir", str(tmp_path), "--names", "mse"]) == 0
+    assert (tmp_path / "mse.onnx").is_file()
+    assert json.loads((tmp_path / "mse.json").read_text())["onnx"]["file"] == "mse.onnx"
+
+
+@pytest.mark.slow
+def test_export_elsewhere_leaves_the_card_alone(tmp_path: Path) -> None:
+    norm = {"state_mean": [256.0] * 5, "state_std": [100.0] * 5, "action_mean": [256.0] * 2, "action_std": [100.0] * 2}
+    save_checkpoint(tmp_path / "ckpt" / "flow", build_policy("flow", hidden_dims=[16]), norm)
+    out = tmp_path / "elsewhere" / "f.onnx"
+    assert main(["--checkpoint", str(tmp_path / "ckpt" / "flow"), "--out", str(out)]) == 0
+    assert out.is_file() and load_card(tmp_path / "ckpt" / "flow")["onnx"] is None
