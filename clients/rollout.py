@@ -1,0 +1,327 @@
+"""Roll out a served Push-T policy over HTTP and print its score as one JSON line.
+
+    python clients/rollout.py --url http://127.0.0.1:8000 --policy flow --episodes 100 --num-envs 100
+
+K envs step in lockstep with the project's one rollout runner (`pusht.rollout.run_episodes`); each
+decision step sends ONE batched `POST /act` for every env still running, and each returned chunk is
+executed open loop for --action-horizon steps. Reproducible: episode i is reset with seed
+`--seed + i`, and decision step d sends request seed `pusht.rollout.decision_seed(--seed, d)`, from
+which the service draws the flow noise; `python -m training.evaluate` applies the same rules in
+process, so the same model gives the same score both ways.
+
+Imports only the standard library, numpy, httpx, tqdm, imageio (for --gif) and `pusht`: no torch.
+Errors (unreachable server, timeout, 4xx/5xx answer, bad URL) end with one line on stderr and exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+from urllib.parse import urlsplit
+
+import httpx
+import numpy as np
+
+try:
+    from pusht.rollout import RolloutSummary, episode_seeds, run_episodes
+except ModuleNotFoundError as exc:
+    if exc.name != "pusht":
+        raise
+    # Run as a script from a checkout that was not pip-installed: the repo root holds `pusht`.
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from pusht.rollout import RolloutSummary, episode_seeds, run_episodes
+
+EXIT_ERROR = 2
+GIF_FPS = 10
+GIF_FRAME_STRIDE = 2  # keep every 2nd control step: half the file, still smooth at 10 fps
+GIF_PIXEL_STRIDE = 2  # halve the rendered frame's width and height
+_DETAIL_CHARS = 300
+
+
+class ClientError(Exception):
+    """A failure to report as one line on stderr (no traceback)."""
+
+
+class HttpPolicy:
+    """The runner's act function over HTTP: one `POST /act` per call, on one keep-alive connection."""
+
+    def __init__(
+        self,
+        url: str,
+        policy: str,
+        api_key: str | None = None,
+        timeout: float = 30.0,
+        on_response: Callable[[int, float], None] | None = None,
+    ):
+        self.endpoint = act_endpoint(url)
+        self.policy = policy
+        self.on_response = on_response
+        headers = {"X-API-Key": api_key} if api_key else {}
+        self.client = httpx.Client(headers=headers, timeout=httpx.Timeout(timeout))
+        self.latencies_s: list[float] = []
+
+    def __call__(self, states: np.ndarray, request_seed: int) -> np.ndarray:
+        """POST the batch of states with the request seed; return actions float32 [B, H, 2]."""
+        # float32 -> Python float -> JSON is exact, so the server sees the same float32 states.
+        payload = {"policy": self.policy, "states": np.asarray(states, dtype=np.float32).tolist(), "seed": int(request_seed)}
+        start = time.perf_counter()
+        try:
+            response = self.client.post(self.endpoint, json=payload)
+        except httpx.TimeoutException as exc:
+            raise ClientError(f"POST {self.endpoint} timed out after {self.client.timeout.read} s ({_one_line(exc) or type(exc).__name__})") from None
+        except httpx.ConnectError as exc:
+            raise ClientError(f"cannot connect to {self.endpoint}: {_one_line(exc) or 'connection failed'}") from None
+        except httpx.HTTPError as exc:
+            raise ClientError(f"POST {self.endpoint} failed: {type(exc).__name__}: {_one_line(exc)}") from None
+        self.latencies_s.append(time.perf_counter() - start)
+
+        if response.status_code >= 400:
+            raise ClientError(
+                f"POST {self.endpoint} -> {response.status_code} {response.reason_phrase}: {_error_detail(response)}"
+            )
+        try:
+            body = response.json()
+            actions = np.asarray(body["actions"], dtype=np.float32)
+        except (ValueError, TypeError, KeyError) as exc:
+            raise ClientError(
+                f"POST {self.endpoint} -> {response.status_code}, but the answer has no numeric 'actions' array "
+                f"({type(exc).__name__}: {_one_line(exc)}): {_one_line(response.text)[:_DETAIL_CHARS]}"
+            ) from None
+        if self.on_response is not None:
+            self.on_response(self.requests, self.latencies_s[-1])
+        return actions
+
+    @property
+    def requests(self) -> int:
+        """Number of answered requests."""
+        return len(self.latencies_s)
+
+    def close(self) -> None:
+        """Close the HTTP connection."""
+        self.client.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point: roll out, print one JSON line on stdout; errors as one line on stderr."""
+    args = _parser().parse_args(argv)
+    try:
+        report = rollout(
+            url=args.url,
+            policy=args.policy,
+            episodes=args.episodes,
+            num_envs=args.num_envs,
+            seed=args.seed,
+            max_steps=args.max_steps,
+            action_horizon=args.action_horizon,
+            gif=args.gif,
+            api_key=args.api_key,
+            timeout=args.timeout,
+            progress=not args.no_progress,
+        )
+    except ClientError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_ERROR
+    except ValueError as exc:  # the runner's checks: bad arguments or malformed actions from the server
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_ERROR
+    except OSError as exc:  # e.g. the GIF path cannot be written
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    print(json.dumps(report))
+    return 0
+
+
+def rollout(
+    url: str,
+    policy: str = "flow",
+    episodes: int = 100,
+    num_envs: int = 100,
+    seed: int = 200000,
+    max_steps: int = 300,
+    action_horizon: int = 12,
+    gif: str | Path | None = None,
+    api_key: str | None = None,
+    timeout: float = 30.0,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Play episodes seed..seed+episodes-1 against the service at `url`; return the JSON report."""
+    for name, value in (("episodes", episodes), ("num_envs", num_envs), ("max_steps", max_steps), ("action_horizon", action_horizon)):
+        if value < 1:
+            raise ClientError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
+    if not timeout > 0:
+        raise ClientError(f"--timeout must be positive, got {timeout}")
+    if seed < 0:
+        raise ClientError(f"--seed must be non-negative, got {seed}")
+    if gif is not None:
+        _check_writable(Path(gif))  # before the rollout, not after minutes of it
+    seeds = episode_seeds(seed, episodes)
+    bar = _ProgressBar(len(seeds)) if progress else None
+    act = HttpPolicy(url, policy, api_key=api_key, timeout=timeout, on_response=bar.on_response if bar else None)
+    try:
+        summary = run_episodes(
+            act,
+            seeds,
+            num_envs=num_envs,
+            max_steps=max_steps,
+            action_horizon=action_horizon,
+            seed=seed,
+            progress=bar if bar is not None else False,
+            record_frames=_shrink_frame if gif is not None else False,
+        )
+    finally:
+        act.close()
+        if bar is not None:
+            bar.close()
+    if gif is not None:
+        write_gif(summary.frames, gif)
+    return report(summary, act, url=url, policy=policy)
+
+
+def report(summary: RolloutSummary, act: HttpPolicy, url: str, policy: str) -> dict[str, Any]:
+    """The one-line JSON report: scores with their 95% bootstrap intervals, seeds, timing, request stats."""
+    seeds = summary.seeds
+    latencies_ms = np.asarray(act.latencies_s, dtype=np.float64) * 1000.0
+    return {
+        "policy": policy,
+        "url": url,
+        "episodes": len(seeds),
+        "seeds": [seeds[0], seeds[-1]],
+        "mean_max_reward": round(summary.mean_max_reward, 4),
+        "mean_max_reward_ci95": [round(x, 4) for x in summary.mean_max_reward_ci95],
+        "success_rate": round(summary.success_rate, 4),
+        "success_rate_ci95": [round(x, 4) for x in summary.success_rate_ci95],
+        "mean_length": round(summary.mean_length, 2),
+        "num_envs": summary.num_envs,
+        "action_horizon": summary.action_horizon,
+        "max_steps": summary.max_steps,
+        "decisions": summary.decisions,
+        "wall_time_s": round(summary.wall_time_s, 2),
+        "requests": act.requests,
+        "mean_request_latency_ms": round(float(latencies_ms.mean()), 2) if act.requests else None,
+        "p95_request_latency_ms": round(float(np.percentile(latencies_ms, 95)), 2) if act.requests else None,
+    }
+
+
+def act_endpoint(url: str) -> str:
+    """The `/act` URL of a service base URL (a URL that already ends in /act is kept)."""
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.netloc:
+        raise ClientError(f"--url must be an http:// or https:// URL with a host, e.g. http://127.0.0.1:8000; got {url!r}")
+    base = url.rstrip("/")
+    return base if parts.path.rstrip("/").endswith("/act") else f"{base}/act"
+
+
+def write_gif(frames: list[np.ndarray], path: str | Path) -> None:
+    """Write every GIF_FRAME_STRIDE-th frame as a looping GIF at GIF_FPS."""
+    if not frames:
+        raise ClientError("no frames were recorded for the GIF")
+    import imageio.v3 as iio  # lazy: only --gif needs it
+
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        iio.imwrite(path, np.stack(frames[::GIF_FRAME_STRIDE]), extension=".gif", duration=1000 / GIF_FPS, loop=0)
+    except OSError as exc:
+        raise ClientError(f"cannot write the GIF {path}: {_one_line(exc)}") from None
+
+
+def _check_writable(path: Path) -> None:
+    if path.is_dir():
+        raise ClientError(f"--gif {path} is a directory; give a file path such as {path / 'episode.gif'}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ClientError(f"--gif {path}: cannot create its folder: {_one_line(exc)}") from None
+    if not os.access(path.parent, os.W_OK):
+        raise ClientError(f"--gif {path}: its folder {path.parent} is not writable")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python clients/rollout.py",
+        description=(
+            "Roll out a served Push-T policy over HTTP: K envs in lockstep, one batched POST /act per "
+            "decision step, each 12-action chunk executed open loop. Prints ONE JSON line with the scores. "
+            "Episode i uses env seed SEED+i; decision step d sends request seed "
+            "pusht.rollout.decision_seed(SEED, d), so the same command gives the same numbers."
+        ),
+    )
+    parser.add_argument("--url", required=True, help="base URL of the service, e.g. http://127.0.0.1:8000")
+    parser.add_argument("--policy", default="flow", help="policy name served by the service (default: flow)")
+    parser.add_argument("--episodes", type=int, default=100, help="number of episodes, env seeds SEED..SEED+N-1 (default: 100)")
+    parser.add_argument("--num-envs", type=int, default=100, help="envs stepped in lockstep, one request per decision for all (default: 100)")
+    parser.add_argument("--seed", type=int, default=200000, help="first episode seed; also seeds the request seeds (default: 200000, the held-out seeds)")
+    parser.add_argument("--max-steps", type=int, default=300, help="episode step limit (default: 300)")
+    parser.add_argument("--action-horizon", type=int, default=12, help="actions of each chunk executed open loop (default: 12)")
+    parser.add_argument("--gif", default=None, metavar="PATH", help="write the first episode as an animated GIF to PATH")
+    parser.add_argument("--api-key", default=None, help="sent as the X-API-Key header when the service requires a key")
+    parser.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="per-request timeout in seconds (default: 30)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    return parser
+
+
+class _ProgressBar:
+    """A tqdm bar of finished episodes on stderr, with the request count and latency as its postfix.
+
+    Opened at the first answered request, so that an error there prints its one line and nothing else;
+    the postfix moves at every request because in lockstep most episodes end together at the step limit.
+    """
+
+    def __init__(self, total: int) -> None:
+        self.total = total
+        self.bar = None
+
+    def _open(self):
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, desc="episodes", unit="ep", file=sys.stderr, leave=False)
+        return self.bar
+
+    def __call__(self, done: int, total: int) -> None:
+        bar = self._open()
+        bar.n = done
+        bar.refresh()
+
+    def on_response(self, requests: int, latency_s: float) -> None:
+        self._open().set_postfix(requests=requests, latency_ms=f"{latency_s * 1000:.1f}")
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _shrink_frame(frame: np.ndarray) -> np.ndarray:
+    # Every frame of the first episode is kept in memory until the end; a GIF needs far less than full size.
+    return np.ascontiguousarray(np.asarray(frame, dtype=np.uint8)[::GIF_PIXEL_STRIDE, ::GIF_PIXEL_STRIDE])
+
+
+def _error_detail(response: httpx.Response) -> str:
+    try:
+        detail = response.json().get("detail", response.json())
+    except (ValueError, AttributeError):
+        return _one_line(response.text)[:_DETAIL_CHARS] or "(empty body)"
+    if isinstance(detail, list):  # FastAPI validation errors: [{"loc": [...], "msg": ...}, ...]
+        detail = "; ".join(
+            f"{'.'.join(str(p) for p in d.get('loc', []))}: {d.get('msg', d)}" if isinstance(d, dict) else str(d)
+            for d in detail
+        )
+    elif not isinstance(detail, str):
+        detail = json.dumps(detail)
+    return _one_line(detail)[:_DETAIL_CHARS]
+
+
+def _one_line(value: Any) -> str:
+    return " ".join(str(value).split())
+
+
+if __name__ == "__main__":
+    sys.exit(main())

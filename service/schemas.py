@@ -1,0 +1,119 @@
+"""Request and response models of the API; the request model also validates `POST /act` bodies.
+
+Validation is strict: numbers must be JSON numbers (no strings or booleans), state values finite
+and within +-STATE_LIMIT, `seed` and `num_steps` integers. NaN / Infinity tokens and overflowing
+literals such as 1e999 parse to non-finite floats and are rejected.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Annotated, Any
+
+from annotated_types import Len
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    create_model,
+    model_validator,
+)
+
+from service.settings import MAX_NUM_STEPS, STATE_LIMIT
+
+__all__ = ["ActRequestBase", "ActResponse", "PolicyInfo", "PoliciesResponse", "act_request_model"]
+
+MAX_SEED = 2**63 - 1
+
+StateValue = Annotated[StrictFloat, Field(ge=-STATE_LIMIT, le=STATE_LIMIT, allow_inf_nan=False)]
+State = Annotated[
+    list[StateValue],
+    Len(5, 5),
+    Field(description="[agent_x, agent_y, block_x, block_y, block_angle] in env units (pixels, radians)"),
+]
+
+
+class ActRequestBase(BaseModel):
+    """Fields shared by every `POST /act` body; `states` is added with the configured batch limit."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        allow_inf_nan=False,
+        json_schema_extra={
+            "examples": [
+                {"policy": "flow", "state": [222.0, 97.0, 222.0, 222.0, 0.8], "seed": 0},
+                {"policy": "mse", "states": [[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1]]},
+            ]
+        },
+    )
+
+    policy: str = Field(min_length=1, max_length=200, description="name of a loaded policy (see GET /policies)")
+    state: State | None = Field(None, description="one state; the answer is one chunk [12, 2]")
+    seed: StrictInt | None = Field(
+        None, ge=0, le=MAX_SEED,
+        description="noise seed: the same seed and states give the same actions; omitted: fresh noise (ignored by mse)",
+    )
+    num_steps: StrictInt | None = Field(
+        None, ge=1, le=MAX_NUM_STEPS,
+        description="flow Euler steps (default: the exported count; the onnx backend runs only that count; ignored by mse)",
+    )
+
+    @model_validator(mode="after")
+    def _exactly_one_input(self) -> "ActRequestBase":
+        has_state = self.state is not None
+        has_states = getattr(self, "states", None) is not None
+        if has_state == has_states:
+            raise ValueError("give exactly one of 'state' (one state of 5 numbers) or 'states' (a list of them)")
+        return self
+
+
+@lru_cache
+def act_request_model(max_states: int) -> type[ActRequestBase]:
+    """The `POST /act` body model with `states` limited to `max_states` entries."""
+    states_type = Annotated[
+        list[State],
+        Field(min_length=1, max_length=max_states, description=f"a batch of 1..{max_states} states; the answer is [B, 12, 2]"),
+    ]
+    return create_model(
+        "ActRequest",
+        __base__=ActRequestBase,
+        __doc__="Body of `POST /act`: a policy name and exactly one of `state` or `states`.",
+        states=(states_type | None, None),
+    )
+
+
+class ActResponse(BaseModel):
+    """Actions in env units, clipped to [0, 512]: [12, 2] for `state`, [B, 12, 2] for `states`."""
+
+    policy: str
+    kind: str = Field(description="mse or flow")
+    backend: str = Field(description="onnx or torch")
+    actions: list[list[float]] | list[list[list[float]]]
+
+
+class PolicyInfo(BaseModel):
+    """One loaded policy, from its card."""
+
+    name: str
+    kind: str
+    num_parameters: int | None = None
+    num_steps: int | None = Field(None, description="flow Euler steps of the exported graph")
+    steps: int | None = Field(None, description="training steps")
+    evaluation: Any = Field(None, description="the card's evaluation results during training, with their seeds")
+    heldout_evaluation: Any = Field(None, description="the card's scores on held-out episode seeds, when shipped")
+    git_commit: str | None = None
+
+
+class PoliciesResponse(BaseModel):
+    """The loaded policies and the backend that runs them."""
+
+    backend: str
+    policies: list[PolicyInfo]
+
+
+class ErrorResponse(BaseModel):
+    """Every error: `detail` is a message, or a list of {loc, msg, type} for validation errors."""
+
+    detail: str | list[dict[str, Any]]

@@ -1,0 +1,21 @@
+"""What the lifespan loads and the routes use: settings, policies, their batchers, metrics, readiness."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from service.backends import LoadedPolicy
+from service.batching import Batcher
+from service.metrics import Metrics
+from service.settings import Settings
+
+
+@dataclass
+class ServiceState:
+    """Per-app state, kept on `app.state.service`; `ready` turns True once every policy is loaded."""
+
+    settings: Settings
+    metrics: Metrics
+    policies: dict[str, LoadedPolicy] = field(default_factory=dict)
+    batchers: dict[str, Batcher] = field(default_factory=dict)
+    ready: bool = False
