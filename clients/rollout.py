@@ -187,23 +187,11 @@ def rollout(
 
 def report(summary: RolloutSummary, act: HttpPolicy, url: str, policy: str) -> dict[str, Any]:
     """The one-line JSON report: scores with their 95% bootstrap intervals, seeds, timing, request stats."""
-    seeds = summary.seeds
     latencies_ms = np.asarray(act.latencies_s, dtype=np.float64) * 1000.0
     return {
         "policy": policy,
         "url": url,
-        "episodes": len(seeds),
-        "seeds": [seeds[0], seeds[-1]],
-        "mean_max_reward": round(summary.mean_max_reward, 4),
-        "mean_max_reward_ci95": [round(x, 4) for x in summary.mean_max_reward_ci95],
-        "success_rate": round(summary.success_rate, 4),
-        "success_rate_ci95": [round(x, 4) for x in summary.success_rate_ci95],
-        "mean_length": round(summary.mean_length, 2),
-        "num_envs": summary.num_envs,
-        "action_horizon": summary.action_horizon,
-        "max_steps": summary.max_steps,
-        "decisions": summary.decisions,
-        "wall_time_s": round(summary.wall_time_s, 2),
+        **summary.scores(),
         "requests": act.requests,
         "mean_request_latency_ms": round(float(latencies_ms.mean()), 2) if act.requests else None,
         "p95_request_latency_ms": round(float(np.percentile(latencies_ms, 95)), 2) if act.requests else None,

@@ -197,6 +197,23 @@ class RolloutSummary:
         """The episode seeds, in the order they were given."""
         return [e.seed for e in self.episodes]
 
+    def scores(self) -> dict[str, Any]:
+        """The headline figures of a one-line report: rounded scores with their intervals, seed range, counts, time."""
+        return {
+            "episodes": len(self.episodes),
+            "seeds": [self.seeds[0], self.seeds[-1]],
+            "mean_max_reward": round(self.mean_max_reward, 4),
+            "mean_max_reward_ci95": [round(x, 4) for x in self.mean_max_reward_ci95],
+            "success_rate": round(self.success_rate, 4),
+            "success_rate_ci95": [round(x, 4) for x in self.success_rate_ci95],
+            "mean_length": round(self.mean_length, 2),
+            "num_envs": self.num_envs,
+            "action_horizon": self.action_horizon,
+            "max_steps": self.max_steps,
+            "decisions": self.decisions,
+            "wall_time_s": round(self.wall_time_s, 2),
+        }
+
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict (without frames)."""
         return {

@@ -202,23 +202,7 @@ def torch_actor(acting: Any, num_steps: int = 10) -> Actor:
 
 def report(summary: RolloutSummary, model: str, kind: str, env: str) -> dict[str, Any]:
     """The one-line JSON report of an evaluation."""
-    seeds = summary.seeds
-    return {
-        "model": str(model),
-        "kind": kind,
-        "env": env,
-        "episodes": len(seeds),
-        "seeds": [seeds[0], seeds[-1]],
-        "mean_max_reward": round(summary.mean_max_reward, 4),
-        "mean_max_reward_ci95": [round(x, 4) for x in summary.mean_max_reward_ci95],
-        "success_rate": round(summary.success_rate, 4),
-        "success_rate_ci95": [round(x, 4) for x in summary.success_rate_ci95],
-        "mean_length": round(summary.mean_length, 2),
-        "num_envs": summary.num_envs,
-        "action_horizon": summary.action_horizon,
-        "decisions": summary.decisions,
-        "wall_time_s": round(summary.wall_time_s, 2),
-    }
+    return {"model": str(model), "kind": kind, "env": env, **summary.scores()}
 
 
 def env_factory(env: str) -> Callable[[], Any]:
