@@ -1,9 +1,9 @@
-"""Print the markdown results table of the shipped policies from their cards (models/*.json).
+"""Print the markdown table of every recorded training run's held-out scores (models/runs/*/).
 
-    python scripts/results_table.py [--models-dir models]
+    python scripts/results_table.py [--models-dir models] [--env pusht]
 
-One row per shipped policy, checkpoint (final and best) and env, with the held-out scores that
-`python -m training.ship` stored in the cards, so the numbers in models/README.md come from a command.
+One row per run and checkpoint (final, best), from the cards that `python -m training.ship` wrote,
+so the numbers in models/README.md come from a command. A run shipped as models/NAME.* says so.
 """
 
 from __future__ import annotations
@@ -13,33 +13,52 @@ import json
 import sys
 from pathlib import Path
 
+DEFAULT_ARCH_KEYS = ("hidden_dims", "horizon", "action_dim", "state_dim")
+
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--models-dir", default="models", help="folder of the shipped policies")
+    parser.add_argument("--models-dir", default="models", help="folder of the shipped policies and their run records")
+    parser.add_argument("--env", nargs="+", default=["pusht", "gym-pusht"], help="envs whose scores to list")
     args = parser.parse_args(argv)
     models = Path(args.models_dir)
-    cards = sorted(models.glob("*.json"))
-    if not cards:
-        print(f"error: no policy cards (*.json) in {models}", file=sys.stderr)
+    records = sorted(p for p in (models / "runs").glob("*") if (p / "last.json").is_file())
+    if not records:
+        print(f"error: no run records (runs/*/last.json) in {models}", file=sys.stderr)
         return 2
-    print("| policy | checkpoint | steps | train wall time | env | mean max reward (95% CI) | success (95% CI) | held-out seeds |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-    for path in cards:
-        final = json.loads(path.read_text())
-        best_path = Path(final.get("run", "")) / "best.json"
-        rows = [("final", final)]
-        if best_path.is_file():
-            rows.append(("best", json.loads(best_path.read_text())))
-        for label, card in rows:
+    shipped = {}
+    for path in models.glob("*.json"):
+        card = json.loads(path.read_text())
+        shipped[Path(card.get("run", "")).name] = path.stem
+
+    print("| run | kind | changes from the recipe | checkpoint | steps | train time | env "
+          "| mean max reward (95% CI) | success (95% CI) | held-out seeds | shipped as |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for record in records:
+        for label in ("final", "best"):
+            card = json.loads((record / ("last.json" if label == "final" else "best.json")).read_text())
             for env, score in (card.get("heldout_evaluation") or {}).items():
+                if env not in args.env:
+                    continue
                 print(
-                    f"| {final['name']} | {label} | {card['steps']:,} | {card['wall_time_s'] / 60:.0f} min | {env} "
-                    f"| {_with_ci(score, 'mean_max_reward')} | {_with_ci(score, 'success_rate', percent=True)} "
-                    f"| {score['seeds'][0]}..{score['seeds'][1]} |"
+                    f"| {record.name} | {card['kind']} | {_changes(card)} | {label} | {card['steps']:,} "
+                    f"| {card['wall_time_s'] / 60:.0f} min | {env} | {_with_ci(score, 'mean_max_reward')} "
+                    f"| {_with_ci(score, 'success_rate', percent=True)} | {score['seeds'][0]}..{score['seeds'][1]} "
+                    f"| {shipped.get(record.name, '') if label == 'final' else ''} |"
                 )
     return 0
+
+
+def _changes(card: dict) -> str:
+    """The architecture and config choices that differ from the published recipe, in a few words."""
+    arch = {k: v for k, v in card["architecture"].items() if k not in DEFAULT_ARCH_KEYS}
+    config = card.get("config", {})
+    parts = [f"{k}={v}" for k, v in arch.items() if not (k == "dropout" and v == 0.1)]
+    noise = (config.get("state_noise_start"), config.get("state_noise_end"), config.get("state_noise_schedule"))
+    if noise != (0.05, 0.05, "constant"):
+        parts.append(f"state noise {noise[0]}->{noise[1]} {noise[2]}")
+    return ", ".join(parts) or "none"
 
 
 def _with_ci(score: dict, key: str, percent: bool = False) -> str:

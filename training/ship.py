@@ -1,12 +1,14 @@
-"""Ship a training run: its final checkpoint becomes `models/NAME`, exported and scored on held-out seeds.
+"""Record a training run's held-out scores and, optionally, ship its final checkpoint as `models/NAME`.
 
-    python -m training.ship --run runs/flow-sincos-skip-150k --name flow
+    python -m training.ship --run runs/flow-sincos-skip-150k --name flow   # record and ship
+    python -m training.ship --run runs/mse-recipe-200k                      # record only
 
-Writes `models/NAME.{safetensors,json,onnx}` (the run's `last` checkpoint), keeps the run's record in
-`models/runs/RUN/` (config, log, learning curve, `best` checkpoint), scores both the final and the best
-checkpoint on the held-out episode seeds (never used during training) in every requested env, stores
-the scores in the cards (`heldout_evaluation`), writes `models/NAME_rollout.gif`, and prints one JSON
-line per evaluation.
+Every run gets a record in `models/runs/RUN/`: its config, log, learning curve, and the cards of its
+final (`last.json`) and best (`best.json`) checkpoints, each with `heldout_evaluation`: the scores on
+held-out episode seeds (never used during training) in every requested env. With `--name`, the final
+checkpoint also becomes `models/NAME.{safetensors,json,onnx}` (scored through its ONNX export, which is
+what the service runs), the best checkpoint's weights are kept in the record, and the first held-out
+episode is written to `models/NAME_rollout.gif`. One JSON line is printed per evaluation.
 """
 
 from __future__ import annotations
@@ -23,14 +25,14 @@ from training.evaluate import ENVS, evaluate_policy, load_actor, report, write_g
 from training.export import export_onnx
 
 HELDOUT_SEED = 200000
-RUN_RECORD_FILES = ("config.json", "log.jsonl", "learning_curve.png", "best.safetensors", "best.json")
+RUN_RECORD_FILES = ("config.json", "log.jsonl", "learning_curve.png", "last.json", "best.json")
 
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point."""
     parser = argparse.ArgumentParser(prog="python -m training.ship", description=__doc__.splitlines()[0])
     parser.add_argument("--run", required=True, help="the run folder written by training.train (has last.* and best.*)")
-    parser.add_argument("--name", required=True, help="the shipped policy's name, e.g. flow or mse")
+    parser.add_argument("--name", default=None, help="ship the final checkpoint as models/NAME (e.g. flow, mse); omit to only record the run")
     parser.add_argument("--models-dir", default="models", help="where shipped policies live")
     parser.add_argument("--episodes", type=int, default=100, help="held-out episodes")
     parser.add_argument("--seed", type=int, default=HELDOUT_SEED, help="first held-out episode seed")
@@ -46,8 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def ship(run: Path, name: str, models_dir: Path, episodes: int, seed: int, envs: list[str], note: str = "") -> list[dict[str, Any]]:
-    """Promote `run`'s final checkpoint to `models_dir/name`, export it, score final and best; returns the reports."""
+def ship(run: Path, name: str | None, models_dir: Path, episodes: int, seed: int, envs: list[str], note: str = "") -> list[dict[str, Any]]:
+    """Record `run` in `models_dir/runs/`, ship its final checkpoint as `models_dir/name` if named; returns the reports."""
     for required in ("last.safetensors", "last.json", "best.safetensors", "best.json"):
         if not (run / required).is_file():
             raise FileNotFoundError(f"{run / required} is missing: is {run} a finished training run?")
@@ -56,26 +58,34 @@ def ship(run: Path, name: str, models_dir: Path, episodes: int, seed: int, envs:
     for file in RUN_RECORD_FILES:
         if (run / file).is_file():
             shutil.copyfile(run / file, record / file)
-    stem = models_dir / name
-    shutil.copyfile(run / "last.safetensors", stem.with_suffix(".safetensors"))
-    card = load_card(run / "last")
-    card.update(name=name, run=str(record), recipe_changes=note or card.get("recipe_changes", ""))
-    write_text_atomic(stem.with_suffix(".json"), json.dumps(card, indent=2, allow_nan=False) + "\n")
-    export_onnx(stem)
+    if note:
+        update_card(record / "last", recipe_changes=note)
+
+    # (label, model to evaluate, cards that receive the scores)
+    targets = [("final", run / "last", [record / "last"]), ("best", run / "best", [record / "best"])]
+    if name is not None:
+        stem = models_dir / name
+        shutil.copyfile(run / "last.safetensors", stem.with_suffix(".safetensors"))
+        shutil.copyfile(run / "best.safetensors", record / "best.safetensors")
+        card = load_card(record / "last")
+        card.update(name=name, run=str(record))
+        write_text_atomic(stem.with_suffix(".json"), json.dumps(card, indent=2, allow_nan=False) + "\n")
+        export_onnx(stem)
+        targets[0] = ("final", stem.with_suffix(".onnx"), [stem, record / "last"])
 
     reports = []
-    for label, target, model in (("final", stem, stem.with_suffix(".onnx")), ("best", record / "best", record / "best")):
+    for label, model, cards in targets:
         scores = {}
         for env in envs:
             actor, kind = load_actor(model)
-            summary = evaluate_policy(actor, kind, episodes=episodes, seed=seed, env=env,
-                                      record_frames=label == "final" and env == envs[0])
-            if summary.frames:
+            gif = name is not None and label == "final" and env == envs[0]
+            summary = evaluate_policy(actor, kind, episodes=episodes, seed=seed, env=env, record_frames=gif)
+            if gif:
                 write_gif(summary.frames, models_dir / f"{name}_rollout.gif")
-            line = report(summary, model=str(model), kind=kind, env=env)
-            scores[env] = line
-            reports.append({"checkpoint": label, **line})
-        update_card(target, heldout_evaluation=scores)
+            scores[env] = report(summary, model=str(model), kind=kind, env=env)
+            reports.append({"checkpoint": label, **scores[env]})
+        for card_stem in cards:
+            update_card(card_stem, heldout_evaluation=scores)
     return reports
 
 
