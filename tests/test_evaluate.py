@@ -113,7 +113,7 @@ def test_cli_prints_one_json_line(checkpoint, tmp_path):
     done = subprocess.run(
         [sys.executable, "-m", "training.evaluate", "--model", str(stem), "--episodes", "3", "--num-envs", "2",
          "--seed", "200000", "--max-steps", "24", "--gif", str(gif)],
-        cwd=REPO, capture_output=True, text=True, timeout=120,
+        cwd=REPO, capture_output=True, text=True, timeout=600,
     )
     assert done.returncode == 0, done.stderr[-2000:]
     lines = done.stdout.strip().splitlines()
