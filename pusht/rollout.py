@@ -23,6 +23,7 @@ __all__ = [
     "EpisodeResult",
     "RolloutSummary",
     "SUCCESS_COVERAGE",
+    "Trajectory",
     "chunk_noise",
     "decision_seed",
     "default_env_factory",
@@ -56,6 +57,7 @@ def run_episodes(
     env_factory: Callable[[], Any] | None = None,
     progress: bool | ProgressFn = False,
     record_frames: bool | Callable[[np.ndarray], np.ndarray] = False,
+    record_trajectories: bool = False,
 ) -> RolloutSummary:
     """Play one episode per seed with `num_envs` envs in lockstep, one `act` call per decision step.
 
@@ -63,6 +65,7 @@ def run_episodes(
     `progress` is False, True (a line on stderr) or a callback `(done, total)`. With
     `record_frames`, the summary holds the rendered frames (`env.render()`) of the first seed's
     episode; a callable `record_frames` is applied to each frame before it is kept (e.g. to shrink it).
+    With `record_trajectories`, the summary holds every episode's states and executed actions.
     """
     seeds = _check_seeds(seeds)
     for name, value in (("num_envs", num_envs), ("max_steps", max_steps), ("action_horizon", action_horizon)):
@@ -77,8 +80,8 @@ def run_episodes(
     num_envs = min(int(num_envs), len(seeds))
     envs = [env_factory() for _ in range(num_envs)]
     try:
-        results, frames, decisions = _lockstep(
-            envs, act, seeds, max_steps, action_horizon, seed, report, record_frames
+        results, frames, trajectories, decisions = _lockstep(
+            envs, act, seeds, max_steps, action_horizon, seed, report, record_frames, record_trajectories
         )
     finally:
         for env in envs:
@@ -95,6 +98,7 @@ def run_episodes(
         action_horizon=int(action_horizon),
         max_steps=int(max_steps),
         frames=frames,
+        trajectories=trajectories,
     )
 
 
@@ -157,6 +161,15 @@ class EpisodeResult:
     final_coverage: float
 
 
+@dataclass(frozen=True)
+class Trajectory:
+    """One episode as a demonstration: the state before each step and the action executed from it."""
+
+    seed: int
+    states: np.ndarray  # [T, 5] float32, env units
+    actions: np.ndarray  # [T, 2] float32, env units
+
+
 @dataclass
 class RolloutSummary:
     """Per-episode results and their means with 95% bootstrap intervals."""
@@ -174,6 +187,7 @@ class RolloutSummary:
     action_horizon: int
     max_steps: int
     frames: list[np.ndarray] = field(default_factory=list, repr=False)
+    trajectories: list[Trajectory] = field(default_factory=list, repr=False)
 
     @classmethod
     def from_episodes(cls, episodes: list[EpisodeResult], **kwargs: Any) -> RolloutSummary:
@@ -244,10 +258,13 @@ class _Slot:
     max_reward: float = 0.0
     success: bool = False
     coverage: float = 0.0
+    states: list[np.ndarray] = field(default_factory=list)
+    actions: list[np.ndarray] = field(default_factory=list)
 
 
-def _lockstep(envs, act, seeds, max_steps, action_horizon, seed, report, record_frames):
+def _lockstep(envs, act, seeds, max_steps, action_horizon, seed, report, record_frames, record_trajectories):
     results: list[EpisodeResult | None] = [None] * len(seeds)
+    trajectories: list[Trajectory | None] = [None] * len(seeds)
     frames: list[np.ndarray] = []
     keep = record_frames if callable(record_frames) else (lambda frame: frame)
     next_index = 0
@@ -267,6 +284,7 @@ def _lockstep(envs, act, seeds, max_steps, action_horizon, seed, report, record_
         slot.max_reward = 0.0
         slot.success = False
         slot.coverage = float(info.get("coverage", 0.0)) if isinstance(info, dict) else 0.0
+        slot.states, slot.actions = [], []
         if record_frames and slot.index == 0:
             frames.append(keep(slot.env.render()))
 
@@ -286,6 +304,9 @@ def _lockstep(envs, act, seeds, max_steps, action_horizon, seed, report, record_
         finished: list[_Slot] = []
         for row, slot in enumerate(running):
             for t in range(action_horizon):
+                if record_trajectories:
+                    slot.states.append(slot.obs.astype(np.float32))
+                    slot.actions.append(chunk[row, t])
                 obs, reward, terminated, truncated, info = slot.env.step(chunk[row, t])
                 slot.obs = np.asarray(obs, dtype=np.float64)
                 slot.length += 1
@@ -306,10 +327,15 @@ def _lockstep(envs, act, seeds, max_steps, action_horizon, seed, report, record_
                 length=slot.length,
                 final_coverage=slot.coverage,
             )
+            if record_trajectories:
+                trajectories[slot.index] = Trajectory(
+                    seed=int(seeds[slot.index]), states=np.stack(slot.states), actions=np.stack(slot.actions)
+                )
             done_count += 1
             report(done_count, len(seeds))
             start(slot)
-    return [r for r in results if r is not None], frames, decisions
+    kept = [t for t in trajectories if t is not None]
+    return [r for r in results if r is not None], frames, kept, decisions
 
 
 def _check_actions(actions: Any, batch: int, action_horizon: int) -> np.ndarray:

@@ -17,6 +17,7 @@ from training.checkpoint import (
     load_card,
     load_checkpoint,
     save_checkpoint,
+    set_noise_scale,
     update_card,
 )
 from training.policies import ActingPolicy, FlowPolicy, MSEPolicy, build_policy
@@ -111,6 +112,25 @@ def test_update_card_keeps_it_valid(tmp_path: Path) -> None:
     with pytest.raises(CheckpointError, match="onnx"):
         update_card(stem, onnx="mse.onnx")
     assert load_card(stem)["onnx"] is None  # the failed update left the card as it was
+
+
+def test_set_noise_scale_changes_sampling_only(tmp_path: Path) -> None:
+    stem, policy = _save(tmp_path, "flow")
+    weights_before = (tmp_path / "flow.safetensors").read_bytes()
+    card = set_noise_scale(stem, 0.7)
+    assert card["architecture"]["noise_scale"] == 0.7 and load_card(stem)["architecture"]["noise_scale"] == 0.7
+    assert (tmp_path / "flow.safetensors").read_bytes() == weights_before
+    scaled, _ = load_checkpoint(stem)
+    policy.eval()
+    state, noise = torch.randn(4, 5), torch.randn(4, 12, 2)
+    torch.testing.assert_close(scaled.sample_actions(state, noise=noise), policy.sample_actions(state, noise=0.7 * noise))
+    assert "noise_scale" not in set_noise_scale(stem, 1.0)["architecture"]  # the default is not listed
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="noise_scale"):
+            set_noise_scale(stem, bad)
+    mse_stem, _ = _save(tmp_path, "mse")
+    with pytest.raises(ValueError, match="flow"):
+        set_noise_scale(mse_stem, 0.7)
 
 
 def test_git_commit_outside_a_repo(tmp_path: Path) -> None:

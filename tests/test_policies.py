@@ -126,9 +126,9 @@ def test_flow_rejects_bad_noise_and_steps() -> None:
         policy.sample_actions(torch.randn(2, 5), num_steps=0)
 
 
-def _constant_mse(chunk_n: torch.Tensor) -> MSEPolicy:
+def _constant_mse(chunk_n: torch.Tensor, **arch) -> MSEPolicy:
     """An MSE policy whose output is `chunk_n` [12, 2] for every state (last layer: zero weights, that bias)."""
-    policy = MSEPolicy().eval()
+    policy = MSEPolicy(**arch).eval()
     last = policy.net[-1]
     with torch.no_grad():
         last.weight.zero_()
@@ -153,6 +153,14 @@ def test_acting_policy_normalizes_the_state() -> None:
     state = torch.rand(3, 5) * 512
     acting(state)
     torch.testing.assert_close(seen[0], (state - mean) / std)
+
+
+def test_agent_frame_chunks_are_relative_to_the_agent() -> None:
+    chunk_n = torch.linspace(-1, 1, 24).reshape(12, 2)
+    acting = ActingPolicy(_constant_mse(chunk_n, action_frame="agent"), [250.0] * 5, [100.0] * 5, [-3.0, 2.0], [50.0, 60.0]).eval()
+    state = torch.tensor([[100.0, 200.0, 300.0, 300.0, 1.0], [400.0, 50.0, 300.0, 300.0, 1.0]])
+    relative = chunk_n * torch.tensor([50.0, 60.0]) + torch.tensor([-3.0, 2.0])
+    torch.testing.assert_close(acting(state), (relative + state[:, None, :2]).clamp(0, 512))
 
 
 def test_acting_policy_clips_to_the_arena() -> None:
@@ -197,7 +205,7 @@ MSE_VARIANT = {"angle_encoding": "sincos", "dropout": 0.0}
 # one combined variant per kind exercises every new op (sin/cos, per-layer concatenation, time features)
 COMBINED = {
     "mse": {"angle_encoding": "sincos", "state_skip": True, "dropout": 0.0},
-    "flow": {"angle_encoding": "sincos", "state_skip": True, "time_embedding": "sinusoidal", "dropout": 0.0},
+    "flow": {"angle_encoding": "sincos", "state_skip": True, "time_embedding": "sinusoidal", "action_frame": "agent", "dropout": 0.0},
 }
 VARIANTS = [("mse", MSE_VARIANT), ("mse", COMBINED["mse"]), ("flow", FLOW_VARIANT), ("flow", COMBINED["flow"])]
 
@@ -245,6 +253,7 @@ def test_default_architecture_lists_no_variant_keys() -> None:
         ("flow", {"time_embedding": "sinusoidal", "time_embedding_dim": 7}, "time_embedding_dim"),
         ("flow", {"time_embedding_dim": 16}, "sinusoidal"),
         ("mse", {"time_embedding": "sinusoidal"}, "unknown"),
+        ("flow", {"action_frame": "block"}, "action_frame"),
     ],
 )
 def test_bad_variants_are_named(kind: str, kwargs: dict, message: str) -> None:

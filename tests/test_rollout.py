@@ -153,6 +153,21 @@ def test_record_frames_of_the_first_episode():
     assert "frames" not in summary.to_dict()
 
 
+def test_recorded_trajectories_replay_to_the_same_states():
+    """Each recorded state is the observation the recorded action was executed from, episode by episode."""
+    seeds = [100000, 100001, 100002]
+    summary = run_episodes(chase_block, seeds, num_envs=2, max_steps=30, env_factory=_our_env, record_trajectories=True)
+    assert [t.seed for t in summary.trajectories] == seeds
+    for trajectory, episode in zip(summary.trajectories, summary.episodes, strict=True):
+        assert trajectory.states.shape == (episode.length, 5) and trajectory.actions.shape == (episode.length, 2)
+        env = _our_env()
+        obs, _ = env.reset(seed=trajectory.seed)
+        for state, action in zip(trajectory.states, trajectory.actions):
+            np.testing.assert_array_equal(state, np.asarray(obs, dtype=np.float32))
+            obs, *_ = env.step(action)
+    assert run_episodes(chase_block, seeds, num_envs=2, max_steps=30, env_factory=_our_env).trajectories == []
+
+
 def test_progress_callback_counts_episodes():
     calls = []
     run_episodes(chase_block, [1, 2, 3], num_envs=2, max_steps=12, env_factory=_gym_pusht_env,

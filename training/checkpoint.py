@@ -177,6 +177,22 @@ def update_card(stem: str | Path, **fields: Any) -> dict[str, Any]:
     return card
 
 
+def set_noise_scale(stem: str | Path, noise_scale: float) -> dict[str, Any]:
+    """Set a flow checkpoint's sampling `noise_scale` (in its architecture; the weights do not change); returns the card."""
+    stem = checkpoint_stem(stem)
+    card = load_card(stem)
+    path = stem.with_suffix(CARD_SUFFIX)
+    if card["kind"] != "flow":
+        raise ValueError(f"{path}: noise_scale applies to flow policies, this card is {card['kind']}")
+    architecture = {k: v for k, v in card["architecture"].items() if k != "noise_scale"}
+    if float(noise_scale) != 1.0:
+        architecture["noise_scale"] = float(noise_scale)
+    card["architecture"] = build_policy("flow", **architecture).architecture  # validates the value
+    validate_card(card, path)
+    write_text_atomic(path, json.dumps(card, indent=2, allow_nan=False) + "\n")
+    return card
+
+
 def checkpoint_stem(stem: str | Path) -> Path:
     """DIR/NAME from DIR/NAME, DIR/NAME.json or DIR/NAME.safetensors (other suffixes are part of the name)."""
     path = Path(stem)

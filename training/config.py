@@ -29,6 +29,8 @@ class TrainConfig:
     name: str = _f("", "run name; outputs go to OUT_DIR/NAME (default: POLICY-YYYYmmdd-HHMMSS)")
     out_dir: str = _f("runs", "parent folder of run folders")
     data: str = _f("data/pusht_lowdim.zarr", "replay zarr with data/state, data/action, meta/episode_ends")
+    extra_data: str = _f("", "comma-separated zarr stores (same layout, e.g. from training.collect) whose windows join the demonstrations'; normalization stays the demonstrations'")
+    init: str = _f("", "checkpoint stem to start from (fine-tuning): its weights, architecture and normalization are used, --arch and --dropout are ignored")
     steps: int = _f(200_000, "optimizer steps (global batches)")
     batch_size: int = _f(128, "global batch size (split across DDP ranks)")
     lr: float = _f(3e-4, "AdamW peak learning rate (cosine decay to 0, no warmup)")

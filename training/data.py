@@ -90,6 +90,16 @@ def load_replay(path: str | Path | None = None) -> Replay:
     return Replay(states=states.astype(np.float32), actions=actions.astype(np.float32), episode_ends=ends)
 
 
+def save_replay(path: str | Path, replay: Replay, attrs: dict[str, Any] | None = None) -> None:
+    """Write `replay` as a zarr v2 store with the dataset's layout (data/state, data/action, meta/episode_ends), replacing `path`."""
+    path = Path(path)
+    root = zarr.open_group(str(path), mode="w", zarr_version=2)
+    root.create_dataset("data/state", data=np.asarray(replay.states, dtype=np.float32))
+    root.create_dataset("data/action", data=np.asarray(replay.actions, dtype=np.float32))
+    root.create_dataset("meta/episode_ends", data=np.asarray(replay.episode_ends, dtype=np.int64))
+    root.attrs.update(attrs or {})
+
+
 def make_windows(replay: Replay, horizon: int = HORIZON) -> tuple[np.ndarray, np.ndarray]:
     """States [W, 5] and action chunks [W, horizon, 2]: the state at t and actions t..t+horizon-1 of one episode."""
     starts = window_starts(replay.episode_ends, horizon)

@@ -43,6 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--env", choices=ENVS, default="pusht", help="our env (pusht) or the reference gym-pusht 0.1.8")
     parser.add_argument("--action-horizon", type=int, default=12, help="actions of each 12-action chunk executed open loop")
     parser.add_argument("--num-steps", type=int, default=10, help="flow: Euler steps of sampling (ONNX files have theirs fixed)")
+    parser.add_argument("--noise-scale", type=float, default=1.0, help="flow: multiply the start noise by this (on top of the model's own noise_scale)")
     parser.add_argument("--max-steps", type=int, default=300, help="episode step limit")
     parser.add_argument("--gif", default=None, help="write the first episode as an animated GIF to this path")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
@@ -59,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
             env=args.env,
             action_horizon=args.action_horizon,
             max_steps=args.max_steps,
+            noise_scale=args.noise_scale,
             progress=not args.no_progress,
             record_frames=args.gif is not None,
         )
@@ -85,12 +87,15 @@ def evaluate_policy(
     action_horizon: int = 12,
     max_steps: int = 300,
     num_steps: int = 10,
+    noise_scale: float = 1.0,
     progress: bool | Callable[[int, int], None] = False,
     record_frames: bool = False,
+    record_trajectories: bool = False,
 ) -> RolloutSummary:
     """Roll out `actor` on episode seeds seed..seed+episodes-1; `actor` is an Actor or a torch ActingPolicy.
 
-    `num_envs=None` runs all episodes at once. Flow noise comes from `chunk_noise(request_seed, B)`.
+    `num_envs=None` runs all episodes at once. Flow noise comes from `chunk_noise(request_seed, B)`,
+    times `noise_scale`.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown policy kind {kind!r}; expected one of {KINDS}")
@@ -98,7 +103,7 @@ def evaluate_policy(
         raise ValueError(f"actor must be callable, got {type(actor).__name__}")
     if not _is_numpy_actor(actor):
         actor = torch_actor(actor, num_steps=num_steps)
-    act = make_act_fn(actor, kind)
+    act = make_act_fn(actor, kind, noise_scale)
     seeds = episode_seeds(seed, episodes)
     if progress is True:
         progress = _tqdm_progress(len(seeds))
@@ -112,14 +117,18 @@ def evaluate_policy(
         env_factory=env_factory(env),
         progress=progress,
         record_frames=_shrink_frame if record_frames else False,
+        record_trajectories=record_trajectories,
     )
 
 
-def make_act_fn(actor: Actor, kind: str) -> ActFn:
+def make_act_fn(actor: Actor, kind: str, noise_scale: float = 1.0) -> ActFn:
     """The runner's act function: flow draws its initial noise from the request seed, as the service does."""
+    if not 0 <= noise_scale <= 10:
+        raise ValueError(f"noise_scale must be in [0, 10], got {noise_scale}")
     if kind == "flow":
         def act(states: np.ndarray, request_seed: int) -> np.ndarray:
-            return actor(states, chunk_noise(request_seed, len(states), CHUNK_HORIZON, ACTION_DIM))
+            noise = chunk_noise(request_seed, len(states), CHUNK_HORIZON, ACTION_DIM)
+            return actor(states, noise if noise_scale == 1.0 else noise * np.float32(noise_scale))
     elif kind == "mse":
         def act(states: np.ndarray, request_seed: int) -> np.ndarray:
             return actor(states, None)

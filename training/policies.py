@@ -30,18 +30,20 @@ ACTION_HIGH = 512.0
 # A normalization std below this is treated as 1 (a constant dimension), so nothing divides by ~0.
 MIN_STD = 1e-6
 ANGLE_ENCODINGS = ("raw", "sincos")
+# "agent": chunks are predicted relative to the agent's position in the state (added back when acting).
+ACTION_FRAMES = ("absolute", "agent")
 TIME_EMBEDDINGS = ("scalar", "sinusoidal")
 DEFAULT_TIME_EMBEDDING_DIM = 32
 # Angular frequencies (rad per unit t) of the sinusoidal time embedding: slow enough to stay monotonic
 # over t in [0, 1], fast enough to separate nearby Euler steps.
 TIME_FREQ_MIN, TIME_FREQ_MAX = 1.0, 1000.0
 _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
-MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip")
-FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim")
+MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame")
+FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale")
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 # Variant keys and their defaults; the `architecture` dict lists a variant key only when it differs,
 # so cards of the default architectures stay exactly as they were.
-_VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "time_embedding": "scalar", "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM}
+_VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar", "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0}
 
 
 @runtime_checkable
@@ -129,6 +131,17 @@ class _StateEncoding(nn.Module):
                 f"given state normalization (mean {mean.item()}, std {std.item()})"
             )
 
+    def _init_net(self, in_dim: int, cond_dim: int, hidden_dims: Sequence[int], out_dim: int, dropout: float, state_skip: bool) -> None:
+        """The MLP as `self.net`: plain, or with the encoded state fed again into every layer (`state_skip`)."""
+        self.state_skip = state_skip
+        if state_skip:
+            self.net = StateSkipMLP(in_dim, cond_dim, hidden_dims, out_dim, dropout)
+        else:
+            self.net = mlp(in_dim, hidden_dims, out_dim, dropout)
+
+    def _run_net(self, inputs: torch.Tensor, encoded: torch.Tensor) -> torch.Tensor:
+        return self.net(inputs, encoded) if self.state_skip else self.net(inputs)
+
     def encode_state(self, state: torch.Tensor) -> torch.Tensor:
         """The network's view of normalized states [B, S]: unchanged ("raw"), or the angle (last channel) as sin, cos of the raw angle."""
         if self.angle_encoding == "raw":
@@ -151,17 +164,15 @@ class MSEPolicy(_StateEncoding):
         state_dim: int = STATE_DIM,
         angle_encoding: str = "raw",
         state_skip: bool = False,
+        action_frame: str = "absolute",
     ) -> None:
         super().__init__()
         self._arch = _check_architecture(hidden_dims, dropout, horizon, action_dim, state_dim)
-        self._arch.update(_check_variants(angle_encoding=angle_encoding, state_skip=state_skip))
+        self._arch.update(_check_variants(angle_encoding=angle_encoding, state_skip=state_skip, action_frame=action_frame))
         self.horizon, self.action_dim, self.state_dim = horizon, action_dim, state_dim
+        self.action_frame = action_frame
         encoded_dim = self._init_state_encoding(angle_encoding)
-        self.state_skip = state_skip
-        if state_skip:
-            self.net = StateSkipMLP(encoded_dim, encoded_dim, self._arch["hidden_dims"], horizon * action_dim, dropout)
-        else:
-            self.net = mlp(encoded_dim, self._arch["hidden_dims"], horizon * action_dim, dropout)
+        self._init_net(encoded_dim, encoded_dim, self._arch["hidden_dims"], horizon * action_dim, dropout, state_skip)
 
     @property
     def architecture(self) -> dict[str, Any]:
@@ -171,8 +182,7 @@ class MSEPolicy(_StateEncoding):
     def forward(self, state: torch.Tensor) -> torch.Tensor:
         """The predicted chunk [B, H, A] of normalized states [B, S]."""
         encoded = self.encode_state(state)
-        out = self.net(encoded, encoded) if self.state_skip else self.net(encoded)
-        return out.reshape(-1, self.horizon, self.action_dim)
+        return self._run_net(encoded, encoded).reshape(-1, self.horizon, self.action_dim)
 
     def compute_loss(self, state: torch.Tensor, action_chunk: torch.Tensor) -> torch.Tensor:
         """Mean squared error between the predicted and the demonstrated normalized chunk."""
@@ -200,17 +210,27 @@ class FlowPolicy(_StateEncoding):
         state_skip: bool = False,
         time_embedding: str = "scalar",
         time_embedding_dim: int = DEFAULT_TIME_EMBEDDING_DIM,
+        action_frame: str = "absolute",
+        noise_scale: float = 1.0,
     ) -> None:
         super().__init__()
         self._arch = _check_architecture(hidden_dims, dropout, horizon, action_dim, state_dim)
         self._arch.update(
             _check_variants(
-                angle_encoding=angle_encoding, state_skip=state_skip, time_embedding=time_embedding, time_embedding_dim=time_embedding_dim
+                angle_encoding=angle_encoding,
+                state_skip=state_skip,
+                time_embedding=time_embedding,
+                time_embedding_dim=time_embedding_dim,
+                action_frame=action_frame,
+                noise_scale=noise_scale,
             )
         )
         self.horizon, self.action_dim, self.state_dim = horizon, action_dim, state_dim
+        self.action_frame = action_frame
+        # Sampling only (training draws x0 ~ N(0, I)): starting closer to the mean trades diversity
+        # for precision, chosen by rollouts on non-held-out seeds (models/README.md).
+        self.noise_scale = float(noise_scale)
         encoded_dim = self._init_state_encoding(angle_encoding)
-        self.state_skip = state_skip
         self.time_embedding = time_embedding
         if time_embedding == "sinusoidal":
             freqs = torch.exp(torch.linspace(math.log(TIME_FREQ_MIN), math.log(TIME_FREQ_MAX), time_embedding_dim // 2))
@@ -220,11 +240,7 @@ class FlowPolicy(_StateEncoding):
         else:
             time_dim = 1
         chunk_dim = horizon * action_dim
-        in_dim = encoded_dim + chunk_dim + time_dim
-        if state_skip:
-            self.net = StateSkipMLP(in_dim, encoded_dim, self._arch["hidden_dims"], chunk_dim, dropout)
-        else:
-            self.net = mlp(in_dim, self._arch["hidden_dims"], chunk_dim, dropout)
+        self._init_net(encoded_dim + chunk_dim + time_dim, encoded_dim, self._arch["hidden_dims"], chunk_dim, dropout, state_skip)
 
     @property
     def architecture(self) -> dict[str, Any]:
@@ -240,8 +256,7 @@ class FlowPolicy(_StateEncoding):
             angles = t * self.time_freqs
             t = torch.cat([torch.sin(angles), torch.cos(angles)], dim=1)
         inputs = torch.cat([encoded, x_t.reshape(batch, -1), t], dim=1)
-        out = self.net(inputs, encoded) if self.state_skip else self.net(inputs)
-        return out.reshape(batch, self.horizon, self.action_dim)
+        return self._run_net(inputs, encoded).reshape(batch, self.horizon, self.action_dim)
 
     def compute_loss(self, state: torch.Tensor, action_chunk: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
         """Flow-matching loss: x_t = (1 - t) x0 + t x1 with x0 ~ N(0, I), t ~ U[0, 1]; target x1 - x0."""
@@ -259,7 +274,7 @@ class FlowPolicy(_StateEncoding):
         num_steps: int = DEFAULT_NUM_STEPS,
         generator: torch.Generator | None = None,
     ) -> torch.Tensor:
-        """Integrate the velocity from x0 = `noise` [B, H, A] (standard normal if None) with `num_steps` Euler steps."""
+        """Integrate the velocity from x0 = noise_scale * `noise` [B, H, A] (standard normal if None) with `num_steps` Euler steps."""
         if num_steps < 1:
             raise ValueError(f"num_steps must be >= 1, got {num_steps}")
         batch = state.shape[0]
@@ -268,7 +283,7 @@ class FlowPolicy(_StateEncoding):
             noise = torch.randn(shape, generator=generator, device=state.device, dtype=state.dtype)
         elif tuple(noise.shape) != shape and not torch.jit.is_tracing() and not torch.compiler.is_compiling():
             raise ValueError(f"noise must have shape {list(shape)}, got {list(noise.shape)}")
-        x = noise
+        x = noise if self.noise_scale == 1.0 else noise * self.noise_scale
         dt = 1.0 / num_steps
         # Python loop: tracing for ONNX unrolls it into num_steps copies of the network.
         for i in range(num_steps):
@@ -319,6 +334,8 @@ class ActingPolicy(nn.Module):
         else:
             chunk_n = self.policy.sample_actions(state_n)
         actions = chunk_n * self.action_std + self.action_mean
+        if self.policy.action_frame == "agent":
+            actions = actions + state[:, None, :ACTION_DIM]
         return torch.clamp(actions, ACTION_LOW, ACTION_HIGH)
 
     def normalization(self) -> dict[str, list[float]]:
@@ -373,7 +390,14 @@ def _architecture_dict(arch: dict[str, Any]) -> dict[str, Any]:
 
 
 def _check_variants(**variants: Any) -> dict[str, Any]:
-    """Validated variant kwargs (angle_encoding, state_skip, time_embedding, time_embedding_dim), or a ValueError naming the bad one."""
+    """Validated variant kwargs (angle_encoding, state_skip, time_embedding, time_embedding_dim, action_frame), or a ValueError naming the bad one."""
+    if "noise_scale" in variants:
+        scale = variants["noise_scale"]
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale <= 10:
+            raise ValueError(f"noise_scale must be a number in [0, 10], got {scale!r}")
+        variants["noise_scale"] = float(scale)
+    if "action_frame" in variants and variants["action_frame"] not in ACTION_FRAMES:
+        raise ValueError(f"action_frame must be one of {ACTION_FRAMES}, got {variants['action_frame']!r}")
     if "angle_encoding" in variants and variants["angle_encoding"] not in ANGLE_ENCODINGS:
         raise ValueError(f"angle_encoding must be one of {ANGLE_ENCODINGS}, got {variants['angle_encoding']!r}")
     if "state_skip" in variants and not isinstance(variants["state_skip"], bool):

@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from training.checkpoint import load_card, update_card, write_text_atomic
+from training.checkpoint import load_card, set_noise_scale, update_card, write_text_atomic
 from training.evaluate import ENVS, evaluate_policy, load_actor, report, write_gif
 from training.export import export_onnx
 
@@ -37,9 +37,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=100, help="held-out episodes")
     parser.add_argument("--seed", type=int, default=HELDOUT_SEED, help="first held-out episode seed")
     parser.add_argument("--envs", nargs="+", choices=ENVS, default=list(ENVS), help="envs to score in")
+    parser.add_argument("--noise-scale", type=float, default=None, help="flow: set the sampling noise_scale of the run's final and best checkpoints first (chosen on non-held-out seeds)")
     parser.add_argument("--note", default="", help="what changed from the published recipe and why (stored in the card)")
     args = parser.parse_args(argv)
     try:
+        if args.noise_scale is not None:
+            for checkpoint in ("last", "best"):
+                set_noise_scale(Path(args.run) / checkpoint, args.noise_scale)
         for line in ship(Path(args.run), args.name, Path(args.models_dir), args.episodes, args.seed, args.envs, args.note):
             print(json.dumps(line))
     except (ValueError, FileNotFoundError) as exc:

@@ -42,8 +42,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def train(cfg: TrainConfig) -> Path:
     """Run one training as configured; returns the run folder."""
-    from training.checkpoint import git_commit, save_checkpoint
-    from training.data import Normalizer, load_replay, make_windows
+    from training.checkpoint import git_commit, load_checkpoint, save_checkpoint
+    from training.data import Normalizer, load_replay
     from training.policies import ActingPolicy, build_policy
 
     ctx = _Distributed.start()
@@ -68,9 +68,28 @@ def train(cfg: TrainConfig) -> Path:
             print(f"run dir: {run_dir}  world size: {ctx.world_size}  threads: {torch.get_num_threads()}", file=sys.stderr)
 
         replay = load_replay(cfg.data)
-        states, chunks = make_windows(replay, horizon=cfg.horizon)
-        normalizer = Normalizer.fit(replay.states, replay.actions)
+        if cfg.init:
+            policy, init_card = load_checkpoint(cfg.init)
+            if init_card["kind"] != cfg.policy:
+                raise ValueError(f"{cfg.init} is a {init_card['kind']} checkpoint, not {cfg.policy}")
+        else:
+            policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, **cfg.architecture_overrides()})
+        states, chunks = training_windows(replay, cfg.horizon, policy.action_frame)
+        if cfg.init:
+            # the exported graph bakes the normalization in, so a fine-tuned policy keeps its base's
+            normalizer = Normalizer.from_dict(init_card["normalization"])
+        elif policy.action_frame == "agent":
+            normalizer = Normalizer.fit(replay.states, chunks)
+        else:
+            normalizer = Normalizer.fit(replay.states, replay.actions)
+        # the normalization comes from the demonstrations alone; extra data only adds windows
+        demo_windows = len(states)
+        for extra in filter(None, (path.strip() for path in cfg.extra_data.split(","))):
+            extra_states, extra_chunks = training_windows(load_replay(extra), cfg.horizon, policy.action_frame)
+            states, chunks = np.concatenate([states, extra_states]), np.concatenate([chunks, extra_chunks])
         normalization = normalizer.to_dict()
+        if ctx.is_main:
+            print(f"windows: {len(states)} ({demo_windows} demonstration, {len(states) - demo_windows} extra)", file=sys.stderr)
         # The whole dataset is a few MB: keep it resident as normalized tensors, no DataLoader.
         states_n = torch.as_tensor(np.asarray(normalizer.normalize_state(states), dtype=np.float32))
         chunks_n = torch.as_tensor(np.asarray(normalizer.normalize_action(chunks), dtype=np.float32))
@@ -78,8 +97,6 @@ def train(cfg: TrainConfig) -> Path:
         if num_windows < cfg.batch_size:
             raise ValueError(f"{cfg.data} has {num_windows} windows, fewer than batch_size {cfg.batch_size}")
 
-        architecture = {"dropout": cfg.dropout, **cfg.architecture_overrides()}
-        policy = build_policy(cfg.policy, **architecture)
         # sin/cos angle encoding needs the raw angle back from the normalized state; a no-op otherwise
         policy.set_input_normalization(normalizer.state_mean, normalizer.state_std)
         policy.train()
@@ -179,6 +196,16 @@ def train(cfg: TrainConfig) -> Path:
         return run_dir
     finally:
         ctx.stop()
+
+
+def training_windows(replay: Any, horizon: int, action_frame: str) -> tuple[np.ndarray, np.ndarray]:
+    """States [W, 5] and the chunks [W, H, 2] a policy learns: in env units, relative to the agent for action_frame="agent"."""
+    from training.data import make_windows
+
+    states, chunks = make_windows(replay, horizon=horizon)
+    if action_frame == "agent":
+        chunks = chunks - states[:, None, :2]
+    return states, chunks
 
 
 def state_noise_std(cfg: TrainConfig, progress: float) -> float:
