@@ -144,6 +144,35 @@ def test_batcher_waits_only_under_load_and_never_past_a_full_batch(test_models: 
     assert lone_under_load >= 0.9  # the last call merged 2 requests: wait for company
 
 
+@pytest.mark.parametrize("spin_s", [0.0, 0.002])
+def test_batcher_worker_answers_in_order_and_passes_errors_on(spin_s: float) -> None:
+    """The worker thread runs calls one by one, spinning or sleeping between them, and a failing call fails only its requests."""
+    from service.batching import Batcher
+
+    class Flaky:
+        name, kind = "flaky", "mse"
+
+        def act(self, states, noise, num_steps):
+            if states[0, 0] < 0:
+                raise RuntimeError("model call failed")
+            return np.repeat(states[:, None, :2], 12, axis=1)
+
+    async def run() -> list:
+        batcher = Batcher(Flaky(), spin_s=spin_s)
+        try:
+            answers = []
+            for value in (1.0, -1.0, 2.0):
+                await asyncio.sleep(0.005)  # longer than the spin: the worker has gone to sleep
+                answers += await asyncio.gather(batcher.submit(np.full((1, 5), value, np.float32)), return_exceptions=True)
+            return answers
+        finally:
+            batcher.close()
+
+    first, failed, third = asyncio.run(run())
+    assert first[0, 0, 0] == 1.0 and third[0, 0, 0] == 2.0
+    assert isinstance(failed, RuntimeError) and "model call failed" in str(failed)
+
+
 def test_batcher_sheds_load_beyond_its_queue_limit(test_models: Path) -> None:
     """Rows beyond queue_limit waiting at once are refused with Overloaded (-> 503); the rest are answered."""
     from service.backends import OnnxPolicy, read_card
