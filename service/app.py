@@ -60,7 +60,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 # 32 concurrent connections, each with a full request, must never be shed.
                 queue_limit=max(settings.queue_limit, NEVER_SHED_CONNECTIONS * settings.max_states),
                 observe=metrics.observe_batch,
-                spin_s=settings.worker_spin_us / 1e6,
             )
         if not settings.access_log:
             logging.getLogger("uvicorn.access").setLevel(logging.WARNING)

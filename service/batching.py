@@ -7,22 +7,15 @@ additionally lets a batch wait until its oldest request is that old (or the batc
 others to join. Each request's noise is drawn from its own seed and then concatenated, so an answer
 never depends on what else was in the batch. Compute runs in the worker thread (ONNX Runtime and
 torch release the GIL), off the event loop.
-
-After each call the worker keeps polling for the next one for `spin_s` (yielding the core to any other
-runnable thread) before it sleeps. On a VM, a sleeping thread's vCPU halts, and waking it and warming
-it up again costs more than the model call itself (a flow call takes 0.33 ms right after another
-and up to 0.77 ms after 2 ms idle), so back-to-back requests would otherwise pay that every time.
 """
 
 from __future__ import annotations
 
 import asyncio
-import os
-import threading
-import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
@@ -58,14 +51,13 @@ class Batcher:
         max_wait_s: float = 0.0,
         queue_limit: int = 8192,
         observe: BatchObserver | None = None,
-        spin_s: float = 0.002,
     ) -> None:
         self.policy = policy
         self.max_rows = max_rows
         self.max_wait_s = max_wait_s
         self.queue_limit = queue_limit
         self._observe = observe
-        self._worker = _SpinningWorker(f"policy-{policy.name}", spin_s)
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"policy-{policy.name}")
         # Only the worker thread draws from this generator, so it needs no lock.
         self._rng = np.random.default_rng()
         self._pending: deque[_Item] = deque()
@@ -100,7 +92,7 @@ class Batcher:
             if not item.future.done():
                 item.future.set_exception(Overloaded(f"policy {self.policy.name!r} is shutting down"))
         self._pending_rows = 0
-        self._worker.stop()
+        self._executor.shutdown(wait=True)
 
     def _schedule(self, loop: asyncio.AbstractEventLoop) -> None:
         if self._busy or not self._pending:
@@ -133,9 +125,8 @@ class Batcher:
             return
         self._busy = True
         self._last_requests = len(batch)
-        done = loop.create_future()
+        done = loop.run_in_executor(self._executor, self._compute, batch)
         done.add_done_callback(lambda fut: self._finish(loop, batch, fut))
-        self._worker.submit(loop, done, self._compute, batch)
 
     def _take_batch(self) -> list[_Item]:
         batch: list[_Item] = []
@@ -196,61 +187,3 @@ class Batcher:
                     item.future.set_result(actions[start:stop])
                 start = stop
         self._schedule(loop)
-
-
-class _SpinningWorker:
-    """One thread running submitted calls in order; it polls for `spin_s` after each call before sleeping."""
-
-    def __init__(self, name: str, spin_s: float) -> None:
-        self.spin_s = spin_s
-        self._jobs: deque[tuple[asyncio.AbstractEventLoop, asyncio.Future, Callable[..., Any], tuple]] = deque()
-        self._wake = threading.Event()
-        self._stopping = False
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
-
-    def submit(self, loop: asyncio.AbstractEventLoop, future: asyncio.Future, fn: Callable[..., Any], *args: Any) -> None:
-        """Run fn(*args) on the worker; its result or exception goes to `future` on `loop`."""
-        self._jobs.append((loop, future, fn, args))
-        self._wake.set()
-
-    def stop(self) -> None:
-        """Finish the queued calls, then end the thread."""
-        self._stopping = True
-        self._wake.set()
-        self._thread.join()
-
-    def _run(self) -> None:
-        jobs = self._jobs
-        while True:
-            if not jobs:
-                deadline = time.perf_counter() + self.spin_s
-                # os.sched_yield releases the GIL and lets any runnable thread have this core.
-                while not jobs and not self._stopping and time.perf_counter() < deadline:
-                    os.sched_yield()
-            if not jobs:
-                if self._stopping:
-                    return
-                # clear, then look again: a submit between the two is seen, one after sets the event
-                self._wake.clear()
-                if not jobs and not self._stopping:
-                    self._wake.wait()
-                continue
-            loop, future, fn, args = jobs.popleft()
-            try:
-                outcome, ok = fn(*args), True
-            except BaseException as exc:  # delivered to the awaiting request, never lost in the thread
-                outcome, ok = exc, False
-            try:
-                loop.call_soon_threadsafe(_settle, future, outcome, ok)
-            except RuntimeError:  # the loop closed while the call ran: nobody is waiting
-                pass
-
-
-def _settle(future: asyncio.Future, outcome: Any, ok: bool) -> None:
-    if future.done():
-        return
-    if ok:
-        future.set_result(outcome)
-    else:
-        future.set_exception(outcome)

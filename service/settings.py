@@ -32,10 +32,6 @@ class Settings(BaseSettings):
             "requests (under load); 0: merge just what queued while the previous call ran"
         ),
     )
-    worker_spin_us: float = Field(
-        2000.0, ge=0.0, le=100_000.0,
-        description="after each model call the policy's worker polls this long for the next one before sleeping (0: sleep at once)",
-    )
     queue_limit: int = Field(
         65536, ge=1,
         description="most state rows waiting per policy before requests get 503 (never below 32 full requests: 32 * max_states)",
