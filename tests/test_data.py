@@ -61,6 +61,18 @@ def test_windows_never_cross_episode_ends(replay: Replay) -> None:
     np.testing.assert_array_equal(np.bincount(episode_of_first, minlength=206), lengths - 11)
 
 
+def test_padded_windows_start_at_every_frame_and_repeat_the_last_action() -> None:
+    actions = np.arange(20, dtype=np.float32).reshape(10, 2)
+    replay = Replay(np.arange(50, dtype=np.float32).reshape(10, 5), actions, np.array([3, 10]))
+    states, chunks = make_windows(replay, horizon=4, pad_end=True)
+    np.testing.assert_array_equal(states, replay.states)  # every frame starts a window
+    np.testing.assert_array_equal(chunks[1], actions[[1, 2, 2, 2]])  # episode 1 ends at frame 2
+    np.testing.assert_array_equal(chunks[3], actions[3:7])
+    np.testing.assert_array_equal(chunks[8], actions[[8, 9, 9, 9]])
+    unpadded = make_windows(replay, horizon=4)[1]
+    np.testing.assert_array_equal(chunks[3:7], unpadded)  # the windows inside episodes are unchanged
+
+
 def test_short_episodes_give_no_windows() -> None:
     replay = Replay(np.zeros((10, 5), np.float32), np.arange(20, dtype=np.float32).reshape(10, 2), np.array([3, 10]))
     states, chunks = make_windows(replay, horizon=4)

@@ -38,6 +38,7 @@ class TrainConfig:
     dropout: float = _f(0.1, "dropout of the policy MLP")
     arch: str = _f("{}", "extra policy constructor kwargs as JSON, e.g. '{\"hidden_dim\": 512}'")
     horizon: int = _f(12, "actions per chunk")
+    pad_episode_end: bool = _f(False, "also train on windows starting in an episode's last horizon-1 frames, their chunks padded with its last action")
     # 0.05 is the recipe; policy-quality.md measured 0.15 and 0.3 hurting, 0.02 and 0.05 within noise.
     state_noise_start: float = _f(0.05, "std of Gaussian noise on normalized training states at step 0")
     state_noise_end: float = _f(0.0, "std of that noise at the last step")

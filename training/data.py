@@ -100,10 +100,19 @@ def save_replay(path: str | Path, replay: Replay, attrs: dict[str, Any] | None =
     root.attrs.update(attrs or {})
 
 
-def make_windows(replay: Replay, horizon: int = HORIZON) -> tuple[np.ndarray, np.ndarray]:
-    """States [W, 5] and action chunks [W, horizon, 2]: the state at t and actions t..t+horizon-1 of one episode."""
-    starts = window_starts(replay.episode_ends, horizon)
-    chunk_index = starts[:, None] + np.arange(horizon)[None, :]
+def make_windows(replay: Replay, horizon: int = HORIZON, pad_end: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """States [W, 5] and action chunks [W, horizon, 2]: the state at t and actions t..t+horizon-1 of one episode.
+
+    With `pad_end`, every frame starts a window, and chunks that would run past their episode's end
+    repeat its last action (as Diffusion Policy's sampler pads), so the final frames are learned too.
+    """
+    if pad_end:
+        starts = np.arange(len(replay.states), dtype=np.int64)
+        last = np.repeat(replay.episode_ends - 1, np.diff(np.concatenate([[0], replay.episode_ends])))
+        chunk_index = np.minimum(starts[:, None] + np.arange(horizon)[None, :], last[:, None])
+    else:
+        starts = window_starts(replay.episode_ends, horizon)
+        chunk_index = starts[:, None] + np.arange(horizon)[None, :]
     return replay.states[starts].copy(), replay.actions[chunk_index]
 
 

@@ -74,7 +74,7 @@ def train(cfg: TrainConfig) -> Path:
                 raise ValueError(f"{cfg.init} is a {init_card['kind']} checkpoint, not {cfg.policy}")
         else:
             policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, **cfg.architecture_overrides()})
-        states, chunks = training_windows(replay, cfg.horizon, policy.action_frame)
+        states, chunks = training_windows(replay, cfg.horizon, policy.action_frame, cfg.pad_episode_end)
         if cfg.init:
             # the exported graph bakes the normalization in, so a fine-tuned policy keeps its base's
             normalizer = Normalizer.from_dict(init_card["normalization"])
@@ -85,7 +85,7 @@ def train(cfg: TrainConfig) -> Path:
         # the normalization comes from the demonstrations alone; extra data only adds windows
         demo_windows = len(states)
         for extra in filter(None, (path.strip() for path in cfg.extra_data.split(","))):
-            extra_states, extra_chunks = training_windows(load_replay(extra), cfg.horizon, policy.action_frame)
+            extra_states, extra_chunks = training_windows(load_replay(extra), cfg.horizon, policy.action_frame, cfg.pad_episode_end)
             states, chunks = np.concatenate([states, extra_states]), np.concatenate([chunks, extra_chunks])
         normalization = normalizer.to_dict()
         if ctx.is_main:
@@ -198,11 +198,11 @@ def train(cfg: TrainConfig) -> Path:
         ctx.stop()
 
 
-def training_windows(replay: Any, horizon: int, action_frame: str) -> tuple[np.ndarray, np.ndarray]:
+def training_windows(replay: Any, horizon: int, action_frame: str, pad_end: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """States [W, 5] and the chunks [W, H, 2] a policy learns: in env units, relative to the agent for action_frame="agent"."""
     from training.data import make_windows
 
-    states, chunks = make_windows(replay, horizon=horizon)
+    states, chunks = make_windows(replay, horizon=horizon, pad_end=pad_end)
     if action_frame == "agent":
         chunks = chunks - states[:, None, :2]
     return states, chunks
