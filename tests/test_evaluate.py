@@ -61,6 +61,14 @@ def test_flow_noise_comes_from_the_request_seed():
         np.testing.assert_array_equal(noise, chunk_noise(decision_seed(42, d), 3))
 
 
+def test_noise_scale_multiplies_the_request_noise():
+    actor = RecordingActor()
+    evaluate_policy(actor, "flow", episodes=2, seed=42, num_envs=2, max_steps=12, noise_scale=0.6)
+    np.testing.assert_allclose(actor.noises[0], 0.6 * chunk_noise(decision_seed(42, 0), 2), rtol=1e-6)
+    with pytest.raises(ValueError, match="noise_scale"):
+        evaluate_policy(actor, "flow", episodes=1, seed=0, max_steps=12, noise_scale=-1.0)
+
+
 def test_mse_gets_no_noise():
     actor = RecordingActor()
     evaluate_policy(actor, "mse", episodes=2, seed=0, max_steps=12)
