@@ -61,6 +61,33 @@ def test_collected_episodes_replay_to_success(collected):
         assert terminated and info["is_success"]
 
 
+@pytest.mark.slow
+def test_retries_of_near_misses_replay_to_success(tmp_path):
+    """A retried episode is the failed episode's steps up to a near-goal state, then a retry from that state that succeeds."""
+    import zarr
+
+    out = tmp_path / "retries.zarr"
+    assert collect_main(["--model", str(SHIPPED_FLOW.with_suffix(".onnx")), "--episodes", "12", "--seed", "300000",
+                         "--num-envs", "12", "--retries", "4", "--out", str(out), "--no-progress"]) == 0
+    replay = load_replay(out)
+    attrs = zarr.open_group(str(out), mode="r").attrs
+    retried = attrs["retried_episodes"]
+    assert retried >= 1 and len(attrs["retry_start_frames"]) == retried
+    first = replay.num_episodes - retried
+    for e, t in zip(range(first, replay.num_episodes), attrs["retry_start_frames"], strict=True):
+        start, end = int(replay.episode_starts()[e]), int(replay.episode_ends[e])
+        env = default_env_factory()
+        obs, _ = env.reset(seed=attrs["kept_seeds"][e])
+        for i in range(start, start + t):  # the failed episode's own steps, from its seed
+            np.testing.assert_array_equal(replay.states[i], np.asarray(obs, dtype=np.float32))
+            obs, *_ = env.step(replay.actions[i])
+        obs, _ = env.reset(options={"restore_state": replay.states[start + t]})
+        for i in range(start + t, end):  # the retry, from the restored near-goal state
+            np.testing.assert_array_equal(replay.states[i], np.asarray(obs, dtype=np.float32))
+            obs, _, terminated, _, info = env.step(replay.actions[i])
+        assert terminated and info["is_success"]
+
+
 def test_collect_refuses_the_heldout_seeds(tmp_path, capsys):
     code = collect_main(["--model", str(SHIPPED_FLOW.with_suffix(".onnx")), "--episodes", "10", "--seed", "199995",
                          "--out", str(tmp_path / "x.zarr"), "--no-progress"])

@@ -90,7 +90,7 @@ def collect(
     kept = [t for t, episode in zip(summary.trajectories, summary.episodes) if episode.success]
     failed = [t for t, episode in zip(summary.trajectories, summary.episodes) if not episode.success]
     retried = _retry_near_misses(actor, kind, failed, retries, retry_coverage, max_steps, seed, noise_scale) if retries else []
-    kept += retried
+    kept += [trajectory for trajectory, _ in retried]
     if not kept:
         raise ValueError(f"none of the {episodes} episodes succeeded; nothing written to {out}")
     replay = Replay(
@@ -107,6 +107,8 @@ def collect(
         "retries": retries,
         "retry_coverage": retry_coverage,
         "retried_episodes": len(retried),
+        # the last `retried_episodes` episodes switch to their retry at these frames (the env restored there)
+        "retry_start_frames": [t for _, t in retried],
     }
     out.parent.mkdir(parents=True, exist_ok=True)
     save_replay(out, replay, attrs)
@@ -121,8 +123,11 @@ def collect(
 
 def _retry_near_misses(
     actor, kind: str, failed: list[Trajectory], retries: int, retry_coverage: float, max_steps: int, seed: int, noise_scale: float
-) -> list[Trajectory]:
-    """For each failed episode that reached `retry_coverage`: its steps up to there plus the first of `retries` successful retries."""
+) -> list[tuple[Trajectory, int]]:
+    """For each failed episode that reached `retry_coverage`: its steps up to there plus the first of `retries` successful retries.
+
+    Returns (trajectory, frame where the retry starts) pairs.
+    """
     starts = []
     for trajectory in failed:
         covered = [coverage(*map(float, state[2:5])) >= retry_coverage for state in trajectory.states]
@@ -150,13 +155,12 @@ def _retry_near_misses(
     out = []
     for start, retry in sorted(chosen.items()):
         original, t = starts[start]
-        out.append(
-            Trajectory(
-                seed=original.seed,
-                states=np.concatenate([original.states[:t], retry.states]),
-                actions=np.concatenate([original.actions[:t], retry.actions]),
-            )
+        joined = Trajectory(
+            seed=original.seed,
+            states=np.concatenate([original.states[:t], retry.states]),
+            actions=np.concatenate([original.actions[:t], retry.actions]),
         )
+        out.append((joined, t))
     return out
 
 
