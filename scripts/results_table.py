@@ -58,6 +58,8 @@ def _changes(card: dict) -> str:
     noise = (config.get("state_noise_start"), config.get("state_noise_end"), config.get("state_noise_schedule"))
     if noise != (0.05, 0.05, "constant"):
         parts.append(f"state noise {noise[0]}->{noise[1]} {noise[2]}")
+    if config.get("pad_episode_end"):
+        parts.append("end-padded windows")
     if config.get("lr", 3e-4) != 3e-4:
         parts.append(f"lr {config['lr']:g}")
     if config.get("init"):
