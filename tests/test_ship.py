@@ -38,6 +38,9 @@ def test_ship_records_scores_and_ships_with_a_noise_scale(run, tmp_path, capsys)
     shipped = load_card(models / "tiny")
     assert shipped["architecture"]["noise_scale"] == 0.5 and shipped["architecture"]["action_frame"] == "agent"
     assert shipped["onnx"]["file"] == "tiny.onnx" and (models / "tiny.onnx").is_file()
+    train_command, ship_command = shipped["reproduce"]
+    assert train_command.startswith("python -m training.train --policy flow --name tiny") and "--steps 40" in train_command
+    assert ship_command == f"python -m training.ship --run {run} --name tiny --noise-scale 0.5"
     assert shipped["heldout_evaluation"]["pusht"]["mean_max_reward"] == lines[0]["mean_max_reward"]
     assert (models / "tiny_rollout.gif").stat().st_size > 1000
     record = models / "runs" / "tiny"

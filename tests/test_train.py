@@ -118,6 +118,20 @@ def test_state_noise_schedules(schedule, expected):
     assert state_noise_std(cfg, 0.25) == pytest.approx({"linear": 0.0375, "cosine": 0.025 * (1 + math.cos(math.pi / 4)), "constant": 0.05}[schedule])
 
 
+def test_command_line_reproduces_the_config():
+    import shlex
+
+    from training.config import command_line
+
+    argv = ["--policy", "flow", "--name", "x", "--steps", "1234", "--pad-episode-end", "--no-progress",
+            "--arch", '{"action_frame": "agent", "dropout": 0.0}', "--extra-data", "a.zarr,b.zarr", "--lr", "1e-4"]
+    config = parse_config(argv).to_dict()
+    command = command_line(config)
+    assert command.startswith("python -m training.train --policy flow --name x ")
+    reparsed = parse_config(shlex.split(command)[3:]).to_dict()
+    assert {k: v for k, v in reparsed.items() if k != "progress"} == {k: v for k, v in config.items() if k != "progress"}
+
+
 def test_defaults_are_the_published_recipe():
     cfg = parse_config(["--policy", "flow"])
     assert (cfg.lr, cfg.weight_decay, cfg.batch_size, cfg.steps, cfg.dropout) == (3e-4, 1e-4, 128, 200_000, 0.1)

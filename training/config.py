@@ -126,6 +126,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def command_line(config: dict[str, Any]) -> str:
+    """The `python -m training.train` command that reproduces a run's saved config (flags that differ from the defaults)."""
+    import shlex
+
+    parts = ["python -m training.train"]
+    for f in fields(TrainConfig):
+        if f.name not in config or f.name in ("progress",):
+            continue
+        value, default = config[f.name], f.default
+        if value == default and f.name not in ("policy", "name"):
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        if isinstance(value, bool):
+            parts.append(flag if value else "--no-" + flag[2:])
+        else:
+            parts.append(f"{flag} {shlex.quote(str(value))}")
+    return " ".join(parts)
+
+
 def parse_config(argv: list[str] | None = None) -> TrainConfig:
     """Parse command-line flags into a validated TrainConfig (argparse reports bad values)."""
     parser = build_parser()

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from training.checkpoint import load_card, set_noise_scale, update_card, write_text_atomic
+from training.config import command_line
 from training.evaluate import ENVS, evaluate_policy, load_actor, report, write_gif
 from training.export import export_onnx
 
@@ -72,7 +73,7 @@ def ship(run: Path, name: str | None, models_dir: Path, episodes: int, seed: int
         shutil.copyfile(run / "last.safetensors", stem.with_suffix(".safetensors"))
         shutil.copyfile(run / "best.safetensors", record / "best.safetensors")
         card = load_card(record / "last")
-        card.update(name=name, run=str(record))
+        card.update(name=name, run=str(record), reproduce=reproduce_commands(card, run, name))
         write_text_atomic(stem.with_suffix(".json"), json.dumps(card, indent=2, allow_nan=False) + "\n")
         export_onnx(stem)
         targets[0] = ("final", stem.with_suffix(".onnx"), [stem, record / "last"])
@@ -91,6 +92,15 @@ def ship(run: Path, name: str | None, models_dir: Path, episodes: int, seed: int
         for card_stem in cards:
             update_card(card_stem, heldout_evaluation=scores)
     return reports
+
+
+def reproduce_commands(card: dict[str, Any], run: Path, name: str) -> list[str]:
+    """The training command (from the run's config) and the ship command that made `models/NAME`."""
+    ship_command = f"python -m training.ship --run {run} --name {name}"
+    scale = card["architecture"].get("noise_scale")
+    if scale is not None:
+        ship_command += f" --noise-scale {scale:g}"
+    return [command_line(card["config"]), ship_command]
 
 
 if __name__ == "__main__":
