@@ -4,9 +4,11 @@
 
 Plays `--episodes` episodes (seeds seed..seed+episodes-1) with the policy, keeps the successful ones
 (coverage above 0.95; the env ends an episode there) and writes them in the demonstrations' zarr
-layout, so `training.train --extra-data` can learn from them. The recorded demonstrations stop short
-of that (their best recorded coverage is 0.88): the kept episodes show the final alignment they lack. Episode seeds may not overlap the held-out seeds, so the held-out scores
-stay a measure of unseen episodes. Prints one JSON line: counts, seeds and scores of the collection.
+layout, so `training.train --extra-data` can learn from them: the recorded demonstrations stop short
+of success (their best recorded coverage is 0.88). Measured in models/README.md: training on these
+episodes did not raise success (end-padded windows did). Episode seeds may not overlap the held-out
+seeds, so the held-out scores stay a measure of unseen episodes. Prints one JSON line: counts, seeds
+and scores of the collection.
 
 With `--retries K`, every failed episode that came within `--retry-coverage` of the goal is played
 again K times from its first state there (the env restored to it, each retry with other noise), and
