@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+import zarr
 
 from pusht.rollout import default_env_factory
 from training.checkpoint import load_checkpoint
@@ -23,9 +26,6 @@ DATA = REPO / "data" / "pusht_lowdim.zarr"
 def collected(tmp_path_factory) -> tuple[Path, dict]:
     """12 episodes of the shipped flow on seeds 300000..300011, successes kept."""
     out = tmp_path_factory.mktemp("collect") / "flow.zarr"
-    import contextlib
-    import io
-
     buffer = io.StringIO()
     with contextlib.redirect_stdout(buffer):
         assert collect_main(["--model", str(SHIPPED_FLOW.with_suffix(".onnx")), "--episodes", "12", "--seed", "300000",
@@ -39,8 +39,6 @@ def test_collect_keeps_exactly_the_successful_episodes(collected):
     assert line["episodes"] == 12 and line["seeds"] == [300000, 300011]
     assert line["kept_episodes"] == round(line["success_rate"] * 12) == replay.num_episodes >= 1
     assert line["kept_frames"] == len(replay.states)
-    import zarr
-
     kept_seeds = zarr.open_group(str(out), mode="r").attrs["kept_seeds"]
     assert len(kept_seeds) == replay.num_episodes and all(300000 <= s <= 300011 for s in kept_seeds)
 
@@ -49,8 +47,6 @@ def test_collected_episodes_replay_to_success(collected):
     """Replaying the stored actions from each kept seed reproduces the stored states and ends in success."""
     out, _ = collected
     replay = load_replay(out)
-    import zarr
-
     kept_seeds = zarr.open_group(str(out), mode="r").attrs["kept_seeds"]
     for seed, start, end in zip(kept_seeds, replay.episode_starts(), replay.episode_ends, strict=True):
         env = default_env_factory()
@@ -64,8 +60,6 @@ def test_collected_episodes_replay_to_success(collected):
 @pytest.mark.slow
 def test_retries_of_near_misses_replay_to_success(tmp_path):
     """A retried episode is the failed episode's steps up to a near-goal state, then a retry from that state that succeeds."""
-    import zarr
-
     out = tmp_path / "retries.zarr"
     assert collect_main(["--model", str(SHIPPED_FLOW.with_suffix(".onnx")), "--episodes", "12", "--seed", "300000",
                          "--num-envs", "12", "--retries", "4", "--out", str(out), "--no-progress"]) == 0

@@ -171,10 +171,7 @@ def update_card(stem: str | Path, **fields: Any) -> dict[str, Any]:
     if clashes:
         raise ValueError(f"card fields {clashes} describe the weights and cannot be updated")
     card.update(fields)
-    path = stem.with_suffix(CARD_SUFFIX)
-    validate_card(card, path)
-    write_text_atomic(path, json.dumps(card, indent=2, allow_nan=False) + "\n")
-    return card
+    return _rewrite_card(stem, card)
 
 
 def set_noise_scale(stem: str | Path, noise_scale: float) -> dict[str, Any]:
@@ -188,6 +185,12 @@ def set_noise_scale(stem: str | Path, noise_scale: float) -> dict[str, Any]:
     if float(noise_scale) != 1.0:
         architecture["noise_scale"] = float(noise_scale)
     card["architecture"] = build_policy("flow", **architecture).architecture  # validates the value
+    return _rewrite_card(stem, card)
+
+
+def _rewrite_card(stem: Path, card: dict[str, Any]) -> dict[str, Any]:
+    """Validate `card` and write it atomically as STEM.json; returns it."""
+    path = stem.with_suffix(CARD_SUFFIX)
     validate_card(card, path)
     write_text_atomic(path, json.dumps(card, indent=2, allow_nan=False) + "\n")
     return card

@@ -42,10 +42,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--note", default="", help="what changed from the published recipe and why (stored in the card)")
     args = parser.parse_args(argv)
     try:
-        if args.noise_scale is not None:
-            for checkpoint in ("last", "best"):
-                set_noise_scale(Path(args.run) / checkpoint, args.noise_scale)
-        for line in ship(Path(args.run), args.name, Path(args.models_dir), args.episodes, args.seed, args.envs, args.note):
+        lines = ship(
+            Path(args.run), args.name, Path(args.models_dir), args.episodes, args.seed, args.envs, args.note, args.noise_scale
+        )
+        for line in lines:
             print(json.dumps(line))
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -53,11 +53,26 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def ship(run: Path, name: str | None, models_dir: Path, episodes: int, seed: int, envs: list[str], note: str = "") -> list[dict[str, Any]]:
-    """Record `run` in `models_dir/runs/`, ship its final checkpoint as `models_dir/name` if named; returns the reports."""
+def ship(
+    run: Path,
+    name: str | None,
+    models_dir: Path,
+    episodes: int,
+    seed: int,
+    envs: list[str],
+    note: str = "",
+    noise_scale: float | None = None,
+) -> list[dict[str, Any]]:
+    """Record `run` in `models_dir/runs/`, ship its final checkpoint as `models_dir/name` if named; returns the reports.
+
+    `noise_scale` (flow) is first set on the run's final and best checkpoints, so every score and export uses it.
+    """
     for required in ("last.safetensors", "last.json", "best.safetensors", "best.json"):
         if not (run / required).is_file():
             raise FileNotFoundError(f"{run / required} is missing: is {run} a finished training run?")
+    if noise_scale is not None:
+        for checkpoint in ("last", "best"):
+            set_noise_scale(run / checkpoint, noise_scale)
     record = models_dir / "runs" / run.name
     record.mkdir(parents=True, exist_ok=True)
     for file in RUN_RECORD_FILES:
