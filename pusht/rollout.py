@@ -25,6 +25,7 @@ __all__ = [
     "SUCCESS_COVERAGE",
     "Trajectory",
     "chunk_noise",
+    "row_noise",
     "decision_seed",
     "default_env_factory",
     "episode_seeds",
@@ -134,6 +135,16 @@ def chunk_noise(seed: int, batch: int, horizon: int = 12, action_dim: int = 2) -
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
     rng = np.random.default_rng(int(seed))
     return rng.standard_normal((int(batch), int(horizon), int(action_dim)), dtype=np.float32)
+
+
+def row_noise(seeds: Sequence[int], horizon: int = 12, action_dim: int = 2) -> np.ndarray:
+    """Per-row noise: row i is `chunk_noise(seeds[i], 1, horizon, action_dim)[0]`, so it depends on its own seed only.
+
+    float32 [len(seeds), horizon, action_dim]; the service applies this to a request's `seeds`.
+    """
+    if isinstance(seeds, (str, bytes)) or not hasattr(seeds, "__len__") or len(seeds) == 0:
+        raise ValueError("seeds must be a non-empty sequence of integers")
+    return np.concatenate([chunk_noise(int(s) if isinstance(s, np.integer) else s, 1, horizon, action_dim) for s in seeds])
 
 
 def default_env_factory():
