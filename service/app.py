@@ -1,8 +1,10 @@
 """The FastAPI app: `uvicorn service.app:app` serves every policy in PUSHT_MODELS_DIR.
 
 Assembles the pieces: settings (service.settings), backends (service.backends), dynamic batching
-(service.batching), routes (service.routes) and metrics (service.metrics). Policies are loaded once
-in the lifespan; a missing or corrupt model file stops startup with a message naming the file.
+(service.batching), the /act hot path (service.act), routes (service.routes), ASGI guards
+(service.guard) and metrics (service.metrics). Policies are loaded once in the lifespan; a bad
+setting, card or model file stops startup with one line naming the variable or the file.
+`python -m service` (service.__main__) adds connection-level limits on top.
 """
 
 from __future__ import annotations
@@ -15,18 +17,16 @@ from typing import AsyncIterator
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
+from fastapi.staticfiles import StaticFiles
 
+from service import protocol
+from service.act import ActFastPath, ActHandler, ServiceError, cap_errors, json_error
 from service.backends import ModelLoadError, load_policies
-from service.batching import Batcher
+from service.batching import Batcher, evaluations
+from service.guard import HeaderLimit, QuietStartupFailure, Refusal
 from service.metrics import Metrics, MetricsMiddleware
-from service.routes import (
-    ActFastPath,
-    ActHandler,
-    ServiceError,
-    json_error,
-    make_router,
-)
-from service.settings import Settings, get_settings
+from service.routes import DOCS_ASSETS, docs_assets_dir, make_router
+from service.settings import Settings, SettingsError, get_settings
 from service.state import ServiceState
 
 __all__ = ["app", "create_app"]
@@ -42,6 +42,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app for `settings` (default: from the environment); policies load in its lifespan."""
     settings = settings or get_settings()
     metrics = Metrics()
+    problems: list[str] = []
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -50,16 +51,22 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         try:
             service.policies = await asyncio.to_thread(load_policies, settings)
         except ModelLoadError as exc:
-            log.error("cannot start: %s", exc)
+            problems.append(str(exc))  # QuietStartupFailure prints it as uvicorn's one error line
             raise
         for name, policy in service.policies.items():
             service.batchers[name] = Batcher(
                 policy,
                 max_rows=settings.batch_max_rows,
+                max_cost=settings.batch_max_cost,
                 max_wait_s=settings.batch_max_wait_ms / 1000.0,
                 # 32 concurrent connections, each with a full request, must never be shed.
-                queue_limit=max(settings.queue_limit, NEVER_SHED_CONNECTIONS * settings.max_states),
+                queue_limit=max(settings.queue_limit, NEVER_SHED_CONNECTIONS * settings.max_states * evaluations(policy, None)),
                 observe=metrics.observe_batch,
+            )
+        if not protocol.ENTRY_POINT:
+            log.warning(
+                "started without `python -m service`: idle and slow connections, connection count and shutdown "
+                "time are bounded only by the server's own flags (see the README's security model)"
             )
         if not settings.access_log:
             logging.getLogger("uvicorn.access").setLevel(logging.WARNING)
@@ -83,10 +90,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "States and actions are in env units: pixels in 0..512, angle in radians."
         ),
         lifespan=lifespan,
+        docs_url=None,  # /docs is our own route, with Swagger UI's assets served locally
+        redoc_url=None,
     )
     app.state.service = ServiceState(settings=settings, metrics=metrics)
     handler = ActHandler(settings)
     app.include_router(make_router(settings, handler))
+    app.mount(DOCS_ASSETS, StaticFiles(directory=docs_assets_dir()), name="docs-assets")
     _document_policy_names(app)
 
     @app.exception_handler(ServiceError)
@@ -96,12 +106,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, exc: RequestValidationError) -> Response:
         # FastAPI's default handler echoes the input, which may hold NaN (not JSON-serializable).
-        detail = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", ""), "type": e.get("type", "")} for e in exc.errors()]
-        return json_error(422, detail)
+        return json_error(422, cap_errors(exc.errors()))
 
     # Added last = outermost: metrics see every request, including those the fast path answers.
     app.add_middleware(ActFastPath, handler=handler)
+    app.add_middleware(HeaderLimit, max_bytes=settings.max_header_bytes)
     app.add_middleware(MetricsMiddleware, metrics=metrics, routes=ROUTES)
+    app.add_middleware(QuietStartupFailure, problems=problems)
     return app
 
 
@@ -120,4 +131,12 @@ def _document_policy_names(app: FastAPI) -> None:
     app.openapi = openapi  # type: ignore[method-assign]
 
 
-app = create_app()
+def _app_from_environment() -> FastAPI | Refusal:
+    """The app for the environment's settings; a bad PUSHT_ variable leaves an app whose startup names it."""
+    try:
+        return create_app(get_settings())
+    except SettingsError as exc:
+        return Refusal(str(exc))
+
+
+app = _app_from_environment()

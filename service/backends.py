@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import stat
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -25,6 +26,7 @@ STATE_DIM = 5
 HORIZON = 12
 ACTION_DIM = 2
 KINDS = ("mse", "flow")
+MAX_CARD_BYTES = 16 << 20
 
 
 class ModelLoadError(RuntimeError):
@@ -53,11 +55,9 @@ def load_policies(settings: Settings) -> dict[str, LoadedPolicy]:
     if not models_dir.is_dir():
         raise ModelLoadError(f"models dir {models_dir} does not exist (set PUSHT_MODELS_DIR)")
     policies: dict[str, LoadedPolicy] = {}
+    # Every *.json is a card: a file that silently failed to load would be a policy silently missing.
     for card_path in sorted(models_dir.glob("*.json")):
         card = read_card(card_path)
-        if card is None:
-            log.info("skipping %s: not a policy card (no 'kind')", card_path)
-            continue
         if settings.backend == "onnx":
             policy: LoadedPolicy = OnnxPolicy(card_path, card, settings.ort_intra_op_threads)
         else:
@@ -69,21 +69,49 @@ def load_policies(settings: Settings) -> dict[str, LoadedPolicy]:
     return policies
 
 
-def read_card(path: Path) -> dict[str, Any] | None:
-    """The card at `path`, or None for a JSON file that is not a card (e.g. learning curves)."""
+def read_card(path: Path) -> dict[str, Any]:
+    """The policy card at `path`; raise ModelLoadError naming the file unless it is a JSON object with the required fields."""
+    _require_regular_file(path, "policy card")
     try:
-        card = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ModelLoadError(f"cannot read policy card {path}: {exc}") from exc
-    if not isinstance(card, dict) or "kind" not in card:
-        return None
+        with open(path, "rb") as f:  # a regular file: opening cannot block
+            raw = f.read(MAX_CARD_BYTES + 1)
+        if len(raw) > MAX_CARD_BYTES:
+            raise ModelLoadError(f"policy card {path} is larger than {MAX_CARD_BYTES} bytes")
+        card = json.loads(raw)
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        if isinstance(exc, ModelLoadError):
+            raise
+        reason = "JSON nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+        raise ModelLoadError(f"cannot read policy card {path}: {reason}") from None
+    if not isinstance(card, dict):
+        raise ModelLoadError(f"policy card {path} must be a JSON object, got {type(card).__name__}")
+    missing = [key for key in ("name", "kind") if key not in card]
+    if missing:
+        raise ModelLoadError(
+            f"policy card {path} lacks {missing}: every *.json in the models dir must be a policy card "
+            "(name, kind, onnx, ... as training.checkpoint writes it)"
+        )
     if card["kind"] not in KINDS:
         raise ModelLoadError(f"policy card {path}: kind must be one of {KINDS}, got {card['kind']!r}")
-    name = card.get("name", path.stem)
-    if name != path.stem:
+    if card["name"] != path.stem:
         # Clients address a policy by name; a card whose name disagrees with its file is ambiguous.
-        raise ModelLoadError(f"policy card {path}: name {name!r} does not match the file stem {path.stem!r}")
+        raise ModelLoadError(f"policy card {path}: name {card['name']!r} does not match the file stem {path.stem!r}")
+    onnx_info = card.get("onnx")
+    if onnx_info is not None and not isinstance(onnx_info, dict):
+        raise ModelLoadError(f"policy card {path}: 'onnx' must be an object (file, inputs, num_steps), got {onnx_info!r:.80}")
+    if onnx_info and not isinstance(onnx_info.get("file", ""), str):
+        raise ModelLoadError(f"policy card {path}: onnx.file must be a file name, got {onnx_info['file']!r:.80}")
     return card
+
+
+def _require_regular_file(path: Path, what: str) -> None:
+    """ModelLoadError unless `path` is a regular file (a FIFO or device would block or never end)."""
+    try:
+        mode = path.stat().st_mode
+    except OSError as exc:
+        raise ModelLoadError(f"{what} {path} is missing or unreadable: {exc.strerror}") from None
+    if not stat.S_ISREG(mode):
+        raise ModelLoadError(f"{what} {path} is not a regular file")
 
 
 def _card_num_steps(card_path: Path, card: dict[str, Any]) -> int:
@@ -110,8 +138,7 @@ class OnnxPolicy:
         self.default_num_steps = _card_num_steps(self.card_path, self.card)
         onnx_file = (self.card.get("onnx") or {}).get("file") or f"{self.name}.onnx"
         path = self.card_path.parent / Path(onnx_file).name
-        if not path.is_file():
-            raise ModelLoadError(f"policy {self.name!r}: ONNX file {path} is missing (card {self.card_path})")
+        _require_regular_file(path, f"policy {self.name!r}: ONNX file")
         options = ort.SessionOptions()
         # One request is a few hundred microseconds of compute: thread pools and parallel graph
         # execution cost more in wake-ups than they save, and the event loop needs the other core.
@@ -171,8 +198,7 @@ class TorchPolicy:
         self.kind = self.card["kind"]
         self.default_num_steps = _card_num_steps(self.card_path, self.card)
         weights = self.card_path.with_suffix(".safetensors")
-        if not weights.is_file():
-            raise ModelLoadError(f"policy {self.name!r}: weights file {weights} is missing (card {self.card_path})")
+        _require_regular_file(weights, f"policy {self.name!r}: weights file")
         try:
             self._module = load_acting_policy(self.card_path.with_suffix(""))
         except Exception as exc:  # safetensors/torch raise many types for a corrupt file
@@ -198,12 +224,16 @@ class TorchPolicy:
 
 
 def _smoke_test(policy: LoadedPolicy, path: Path) -> None:
-    """One call at load time: catches a graph with the wrong output shape and warms the session up."""
-    states = np.full((2, STATE_DIM), 256.0, dtype=np.float32)
-    noise = np.zeros((2, HORIZON, ACTION_DIM), dtype=np.float32) if policy.kind == "flow" else None
+    """Calls at load time: catch a wrong output shape or non-finite output (broken weights), and warm the session up."""
+    rng = np.random.default_rng(0)
+    states = np.column_stack([rng.uniform(0, 512, (8, 4)), rng.uniform(0, 2 * np.pi, 8)]).astype(np.float32)
+    states[0] = 256.0
+    noise = rng.standard_normal((8, HORIZON, ACTION_DIM), dtype=np.float32) if policy.kind == "flow" else None
     try:
         out = np.asarray(policy.act(states, noise, None))
     except Exception as exc:
         raise ModelLoadError(f"policy {policy.name!r}: test inference on {path} failed: {exc}") from exc
-    if out.shape != (2, HORIZON, ACTION_DIM):
+    if out.shape != (8, HORIZON, ACTION_DIM):
         raise ModelLoadError(f"policy {policy.name!r}: {path} returns shape {list(out.shape)}, expected [B, {HORIZON}, {ACTION_DIM}]")
+    if not np.isfinite(out).all():
+        raise ModelLoadError(f"policy {policy.name!r}: warm-up output of {path} is not finite (NaN or inf): broken weights")

@@ -1,12 +1,15 @@
-"""Dynamic batching: concurrent requests for one policy are merged into one model call.
+"""Dynamic batching: concurrent requests for one policy are merged into model calls, fairly.
 
-Requests queue on the event loop. Whenever the policy's worker thread is free, everything queued
-(up to `max_rows` state rows, and only requests with the same `num_steps`) goes to it as one call,
-so under load batches grow by themselves while a lone request waits for nothing. `max_wait_s` > 0
-additionally lets a batch wait until its oldest request is that old (or the batch is full) for
-others to join. Each request's noise is drawn from its own seed and then concatenated, so an answer
-never depends on what else was in the batch. Compute runs in the worker thread (ONNX Runtime and
-torch release the GIL), off the event loop.
+Requests queue on the event loop. Whenever the policy's worker thread is free, one model call is cut
+from the queue: at most `max_cost` cost units (rows x network evaluations: a flow row costs its
+num_steps, an mse row 1) and `max_rows` rows, only rows with the oldest request's `num_steps`. The
+call's rows are shared max-min fairly: requests with few rows left go whole, and bulk requests split
+the rest evenly, so a 1-row request waits for at most one short call however many 1,024-row batches
+are queued, while bulk rows still fill every call (a model's cost per row is flat beyond a few dozen
+rows). Noise is drawn per request (`seed`) or per row (`seeds`) and sliced, so an answer never
+depends on what else was in the batch. Requests whose client left (their future is done) are
+dropped before their rows reach the model. Compute runs in the worker thread (ONNX Runtime and torch
+release the GIL), off the event loop.
 """
 
 from __future__ import annotations
@@ -15,14 +18,14 @@ import asyncio
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
-from pusht.rollout import chunk_noise
+from pusht.rollout import chunk_noise, row_noise
 from service.backends import ACTION_DIM, HORIZON, LoadedPolicy
 
-__all__ = ["Batcher", "Overloaded"]
+__all__ = ["Batcher", "Overloaded", "evaluations"]
 
 BatchObserver = Callable[[str, int, int], None]
 """(policy name, state rows, requests) -> None, called once per model call."""
@@ -32,17 +35,34 @@ class Overloaded(RuntimeError):
     """The policy's queue is full; the request should be retried later."""
 
 
-@dataclass(slots=True)
+def evaluations(policy: LoadedPolicy, num_steps: int | None) -> int:
+    """Network evaluations per state row: the flow step count, 1 for mse."""
+    if policy.kind != "flow":
+        return 1
+    return num_steps if num_steps is not None else getattr(policy, "default_num_steps", 1)
+
+
+@dataclass(slots=True, eq=False)
 class _Item:
     states: np.ndarray
     seed: int | None
+    seeds: Sequence[int] | None
     num_steps: int | None
     future: asyncio.Future
     arrived: float
+    unit: int
+    taken: int = 0
+    """rows handed to model calls so far; set to all rows when the request is dropped"""
+    done: int = 0
+    noise: np.ndarray | None = None
+    out: np.ndarray | None = None
+
+
+_Slice = tuple[_Item, int, int]
 
 
 class Batcher:
-    """Queues `act` requests for one policy and runs them in merged model calls on a worker thread."""
+    """Queues `act` requests for one policy and runs them in fair, merged model calls on a worker thread."""
 
     def __init__(
         self,
@@ -51,9 +71,11 @@ class Batcher:
         max_wait_s: float = 0.0,
         queue_limit: int = 8192,
         observe: BatchObserver | None = None,
+        max_cost: int = 640,
     ) -> None:
         self.policy = policy
         self.max_rows = max_rows
+        self.max_cost = max_cost
         self.max_wait_s = max_wait_s
         self.queue_limit = queue_limit
         self._observe = observe
@@ -61,6 +83,7 @@ class Batcher:
         # Only the worker thread draws from this generator, so it needs no lock.
         self._rng = np.random.default_rng()
         self._pending: deque[_Item] = deque()
+        self._pending_cost = 0
         self._pending_rows = 0
         self._busy = False
         self._scheduled = False
@@ -68,21 +91,34 @@ class Batcher:
         self._last_requests = 0
         self._closed = False
 
-    async def submit(self, states: np.ndarray, seed: int | None = None, num_steps: int | None = None) -> np.ndarray:
+    async def submit(
+        self, states: np.ndarray, seed: int | None = None, num_steps: int | None = None, seeds: Sequence[int] | None = None
+    ) -> np.ndarray:
         """Actions [B, 12, 2] for float32 states [B, 5]; raise Overloaded when the queue is full."""
+        return await self.enqueue(states, seed, num_steps, seeds)
+
+    def enqueue(
+        self, states: np.ndarray, seed: int | None = None, num_steps: int | None = None, seeds: Sequence[int] | None = None
+    ) -> asyncio.Future:
+        """Queue a request; its future gets the actions. Finishing the future early (client gone) drops its queued rows."""
         rows = len(states)
         if self._closed:
             raise Overloaded(f"policy {self.policy.name!r} is shutting down")
-        if self._pending_rows + rows > self.queue_limit:
+        unit = evaluations(self.policy, num_steps)
+        if self._pending_cost + rows * unit > self.queue_limit:
             raise Overloaded(
-                f"policy {self.policy.name!r} has {self._pending_rows} state rows queued (limit {self.queue_limit}); retry later"
+                f"policy {self.policy.name!r} has {self._pending_cost} cost units queued (limit {self.queue_limit}; "
+                f"a row costs its network evaluations, {unit} here); retry later"
             )
         loop = asyncio.get_running_loop()
         future = loop.create_future()
-        self._pending.append(_Item(states, seed, num_steps, future, loop.time()))
+        item = _Item(states, seed, seeds, num_steps, future, loop.time(), unit)
+        future.add_done_callback(lambda _: self._drop_rest(item))
+        self._pending.append(item)
+        self._pending_cost += rows * unit
         self._pending_rows += rows
         self._schedule(loop)
-        return await future
+        return future
 
     def close(self) -> None:
         """Fail queued requests, then wait for the running model call and stop the worker thread."""
@@ -91,14 +127,22 @@ class Batcher:
             item = self._pending.popleft()
             if not item.future.done():
                 item.future.set_exception(Overloaded(f"policy {self.policy.name!r} is shutting down"))
-        self._pending_rows = 0
         self._executor.shutdown(wait=True)
+
+    def _drop_rest(self, item: _Item) -> None:
+        """Once a request's future is done, its rows not yet handed to the model stop counting."""
+        left = len(item.states) - item.taken
+        if left:
+            item.taken += left
+            self._pending_cost -= left * item.unit
+            self._pending_rows -= left
 
     def _schedule(self, loop: asyncio.AbstractEventLoop) -> None:
         if self._busy or not self._pending:
             return
+        full = self._pending_rows >= self.max_rows or self._pending_cost >= self.max_cost
         if self._scheduled:
-            if self._timer is not None and self._pending_rows >= self.max_rows:
+            if self._timer is not None and full:
                 # A full batch need not wait for the rest of max_wait.
                 self._timer.cancel()
                 self._timer = None
@@ -109,7 +153,7 @@ class Batcher:
         # model call go as soon as it ends.
         delay = self.max_wait_s - (loop.time() - self._pending[0].arrived)
         # Waiting only pays under load: with one request at a time (the last call had one) it is pure latency.
-        if delay > 0 and self._pending_rows < self.max_rows and self._last_requests > 1:
+        if delay > 0 and not full and self._last_requests > 1:
             self._timer = loop.call_later(delay, self._flush, loop)
         else:
             # call_soon still lets every request whose bytes arrived in this loop iteration join.
@@ -128,62 +172,88 @@ class Batcher:
         done = loop.run_in_executor(self._executor, self._compute, batch)
         done.add_done_callback(lambda fut: self._finish(loop, batch, fut))
 
-    def _take_batch(self) -> list[_Item]:
-        batch: list[_Item] = []
-        rows = 0
+    def _take_batch(self) -> list[_Slice]:
+        """The next call's rows: the oldest request's num_steps, max-min fair shares of the call's budget."""
         pending = self._pending
-        while pending:
-            item = pending[0]
-            if item.future.done():  # the client went away (cancelled) while queued
-                pending.popleft()
-                self._pending_rows -= len(item.states)
-                continue
-            if batch and (item.num_steps != batch[0].num_steps or rows + len(item.states) > self.max_rows):
-                break
+        while pending and pending[0].taken == len(pending[0].states):
             pending.popleft()
-            self._pending_rows -= len(item.states)
-            rows += len(item.states)
-            batch.append(item)
+        if not pending:
+            return []
+        steps = pending[0].num_steps  # the oldest request picks, so no num_steps group waits forever
+        if len(pending) == 1:
+            group = [pending[0]]
+        else:
+            live = [item for item in pending if item.taken < len(item.states)]
+            pending.clear()
+            pending.extend(live)
+            group = sorted((item for item in live if item.num_steps == steps), key=lambda it: len(it.states) - it.taken)
+        unit = group[0].unit
+        left = max(1, min(self.max_rows, self.max_cost // unit))
+        batch: list[_Slice] = []
+        for k, item in enumerate(group):
+            if left <= 0:
+                break
+            rows = min(len(item.states) - item.taken, max(1, left // (len(group) - k)))
+            batch.append((item, item.taken, item.taken + rows))
+            item.taken += rows
+            left -= rows
+            self._pending_cost -= rows * unit
+            self._pending_rows -= rows
         return batch
 
-    def _compute(self, batch: list[_Item]) -> np.ndarray:
-        """Runs on the worker thread: per-request noise, one concatenated model call."""
+    def _compute(self, batch: list[_Slice]) -> np.ndarray:
+        """Runs on the worker thread: noise per request or row, one concatenated model call."""
         policy = self.policy
         if len(batch) == 1:
-            states = batch[0].states
+            item, start, stop = batch[0]
+            states = item.states[start:stop]
         else:
-            states = np.concatenate([item.states for item in batch])
+            states = np.concatenate([item.states[start:stop] for item, start, stop in batch])
         noise = None
         if policy.kind == "flow":
-            parts = [self._noise(item) for item in batch]
+            parts = [self._noise(*part) for part in batch]
             noise = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        actions = policy.act(states, noise, batch[0].num_steps)
+        actions = policy.act(states, noise, batch[0][0].num_steps)
         if self._observe is not None:
             self._observe(policy.name, len(states), len(batch))
         return actions
 
-    def _noise(self, item: _Item) -> np.ndarray:
-        rows = len(item.states)
+    def _noise(self, item: _Item, start: int, stop: int) -> np.ndarray:
+        if item.seeds is not None:
+            return row_noise(item.seeds[start:stop], HORIZON, ACTION_DIM)
         if item.seed is not None:
-            return chunk_noise(item.seed, rows, HORIZON, ACTION_DIM)
-        return self._rng.standard_normal((rows, HORIZON, ACTION_DIM), dtype=np.float32)
+            if start == 0 and stop == len(item.states):
+                return chunk_noise(item.seed, stop, HORIZON, ACTION_DIM)
+            if item.noise is None:  # a request split over calls: its one draw, sliced
+                item.noise = chunk_noise(item.seed, len(item.states), HORIZON, ACTION_DIM)
+            return item.noise[start:stop]
+        return self._rng.standard_normal((stop - start, HORIZON, ACTION_DIM), dtype=np.float32)
 
-    def _finish(self, loop: asyncio.AbstractEventLoop, batch: list[_Item], fut: asyncio.Future) -> None:
+    def _finish(self, loop: asyncio.AbstractEventLoop, batch: list[_Slice], fut: asyncio.Future) -> None:
         self._busy = False
         if fut.cancelled():
             error: BaseException | None = asyncio.CancelledError()
         else:
             error = fut.exception()
         if error is not None:
-            for item in batch:
+            for item, _, _ in batch:
                 if not item.future.done():
                     item.future.set_exception(error)
         else:
             actions = fut.result()
-            start = 0
-            for item in batch:
-                stop = start + len(item.states)
-                if not item.future.done():
-                    item.future.set_result(actions[start:stop])
-                start = stop
+            offset = 0
+            for item, start, stop in batch:
+                part = actions[offset : offset + stop - start]
+                offset += stop - start
+                if item.future.done():
+                    continue
+                if start == 0 and stop == len(item.states):
+                    item.future.set_result(part)
+                    continue
+                if item.out is None:
+                    item.out = np.empty((len(item.states), *actions.shape[1:]), dtype=actions.dtype)
+                item.out[start:stop] = part
+                item.done += stop - start
+                if item.done == len(item.states):
+                    item.future.set_result(item.out)
         self._schedule(loop)

@@ -1,7 +1,8 @@
 """Request and response models of the API; the request model also validates `POST /act` bodies.
 
 Validation is strict: numbers must be JSON numbers (no strings or booleans), state values finite
-and within +-STATE_LIMIT, `seed` and `num_steps` integers. NaN / Infinity tokens and overflowing
+and within +-STATE_LIMIT, `seed`, `seeds` and `num_steps` integers; `seeds` gives one seed per row
+of `states` (same length), as an alternative to one `seed` for the whole batch. NaN / Infinity tokens and overflowing
 literals such as 1e999 parse to non-finite floats and are rejected.
 """
 
@@ -33,6 +34,7 @@ State = Annotated[
     Len(5, 5),
     Field(description="[agent_x, agent_y, block_x, block_y, block_angle] in env units (pixels, radians)"),
 ]
+Seed = Annotated[StrictInt, Field(ge=0, le=MAX_SEED)]
 
 
 class ActRequestBase(BaseModel):
@@ -45,6 +47,7 @@ class ActRequestBase(BaseModel):
             "examples": [
                 {"policy": "flow", "state": [222.0, 97.0, 222.0, 222.0, 0.8], "seed": 0},
                 {"policy": "mse", "states": [[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1]]},
+                {"policy": "flow", "states": [[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1]], "seeds": [7, 8]},
             ]
         },
     )
@@ -53,7 +56,10 @@ class ActRequestBase(BaseModel):
     state: State | None = Field(None, description="one state; the answer is one chunk [12, 2]")
     seed: StrictInt | None = Field(
         None, ge=0, le=MAX_SEED,
-        description="noise seed: the same seed and states give the same actions; omitted: fresh noise (ignored by mse)",
+        description=(
+            "noise seed for the whole request: the same seed and states give the same actions; "
+            "omitted (and no `seeds`): fresh noise (ignored by mse)"
+        ),
     )
     num_steps: StrictInt | None = Field(
         None, ge=1, le=MAX_NUM_STEPS,
@@ -66,6 +72,16 @@ class ActRequestBase(BaseModel):
         has_states = getattr(self, "states", None) is not None
         if has_state == has_states:
             raise ValueError("give exactly one of 'state' (one state of 5 numbers) or 'states' (a list of them)")
+        seeds = getattr(self, "seeds", None)
+        if seeds is not None:
+            if has_state:
+                raise ValueError("'seeds' goes with 'states' (one seed per state); with a single 'state' send 'seed'")
+            if self.seed is not None:
+                raise ValueError("give at most one of 'seed' (one for the whole batch) or 'seeds' (one per state)")
+            if len(seeds) != len(self.states):  # type: ignore[attr-defined]
+                raise ValueError(
+                    f"'seeds' has {len(seeds)} entries but 'states' has {len(self.states)}: give one seed per state"  # type: ignore[attr-defined]
+                )
         return self
 
 
@@ -76,11 +92,22 @@ def act_request_model(max_states: int) -> type[ActRequestBase]:
         list[State],
         Field(min_length=1, max_length=max_states, description=f"a batch of 1..{max_states} states; the answer is [B, 12, 2]"),
     ]
+    seeds_type = Annotated[
+        list[Seed],
+        Field(
+            min_length=1, max_length=max_states,
+            description=(
+                "one noise seed per state of `states`: row i's actions equal those of a single request with "
+                "`state` = states[i] and `seed` = seeds[i], whatever else is in the batch (ignored by mse)"
+            ),
+        ),
+    ]
     return create_model(
         "ActRequest",
         __base__=ActRequestBase,
-        __doc__="Body of `POST /act`: a policy name and exactly one of `state` or `states`.",
+        __doc__="Body of `POST /act`: a policy name, exactly one of `state` or `states`, and `seed` or `seeds`.",
         states=(states_type | None, None),
+        seeds=(seeds_type | None, None),
     )
 
 

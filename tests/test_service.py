@@ -367,7 +367,7 @@ def test_every_bad_request_gets_a_json_4xx_and_the_server_keeps_answering(server
 def test_oversized_bodies_get_413_before_parsing(server: UvicornProcess) -> None:
     """Declared (Content-Length) and undeclared (chunked) bodies over PUSHT_MAX_BODY_BYTES get a JSON 413."""
     big = b'{"policy": "flow", "states": [' + b"[1, 2, 3, 4, 5]," * 100_000 + b"[1, 2, 3, 4, 5]]}"
-    with httpx.Client(base_url=server.url, timeout=30) as client:
+    with httpx.Client(base_url=server.url, timeout=30, headers={"content-type": "application/json"}) as client:
         declared = client.post("/act", content=big)
         assert declared.status_code == 413 and "limit" in declared.json()["detail"]
 
