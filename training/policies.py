@@ -39,11 +39,11 @@ DEFAULT_TIME_EMBEDDING_DIM = 32
 TIME_FREQ_MIN, TIME_FREQ_MAX = 1.0, 1000.0
 _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
 MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame")
-FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale")
+FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale", "steering_dims")
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 # Variant keys and their defaults; the `architecture` dict lists a variant key only when it differs,
 # so cards of the default architectures stay exactly as they were.
-_VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar", "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0}
+_VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar", "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0, "steering_dims": None}
 
 
 @runtime_checkable
@@ -212,6 +212,7 @@ class FlowPolicy(_StateEncoding):
         time_embedding_dim: int = DEFAULT_TIME_EMBEDDING_DIM,
         action_frame: str = "absolute",
         noise_scale: float = 1.0,
+        steering_dims: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         self._arch = _check_architecture(hidden_dims, dropout, horizon, action_dim, state_dim)
@@ -223,6 +224,7 @@ class FlowPolicy(_StateEncoding):
                 time_embedding_dim=time_embedding_dim,
                 action_frame=action_frame,
                 noise_scale=noise_scale,
+                steering_dims=steering_dims,
             )
         )
         self.horizon, self.action_dim, self.state_dim = horizon, action_dim, state_dim
@@ -241,6 +243,12 @@ class FlowPolicy(_StateEncoding):
             time_dim = 1
         chunk_dim = horizon * action_dim
         self._init_net(encoded_dim + chunk_dim + time_dim, encoded_dim, self._arch["hidden_dims"], chunk_dim, dropout, state_skip)
+        # Learned start noise (training.finetune); None: x0 is noise_scale * noise, as trained.
+        self.steering = None
+        if self._arch["steering_dims"] is not None:
+            from training.steering import NoiseSteering
+
+            self.steering = NoiseSteering(encoded_dim, (horizon, action_dim), self._arch["steering_dims"])
 
     @property
     def architecture(self) -> dict[str, Any]:
@@ -283,7 +291,18 @@ class FlowPolicy(_StateEncoding):
             noise = torch.randn(shape, generator=generator, device=state.device, dtype=state.dtype)
         elif tuple(noise.shape) != shape and not torch.jit.is_tracing() and not torch.compiler.is_compiling():
             raise ValueError(f"noise must have shape {list(shape)}, got {list(noise.shape)}")
-        x = noise if self.noise_scale == 1.0 else noise * self.noise_scale
+        x = self.start_noise(state, noise)
+        return self.integrate(state, x, num_steps)
+
+    def start_noise(self, state: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """The Euler start x0 [B, H, A] of standard-normal `noise`: scaled, and steered when the policy has steering."""
+        if self.steering is not None:
+            return self.steering(self.encode_state(state), noise, self.noise_scale)
+        return noise if self.noise_scale == 1.0 else noise * self.noise_scale
+
+    def integrate(self, state: torch.Tensor, x0: torch.Tensor, num_steps: int = DEFAULT_NUM_STEPS) -> torch.Tensor:
+        """Normalized chunks [B, H, A]: the velocity integrated from x0 with `num_steps` Euler steps."""
+        x = x0
         dt = 1.0 / num_steps
         # Python loop: tracing for ONNX unrolls it into num_steps copies of the network.
         for i in range(num_steps):
@@ -396,6 +415,13 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale <= 10:
             raise ValueError(f"noise_scale must be a number in [0, 10], got {scale!r}")
         variants["noise_scale"] = float(scale)
+    if variants.get("steering_dims") is not None:
+        dims = variants["steering_dims"]
+        if isinstance(dims, (str, bytes)) or not isinstance(dims, Sequence) or not dims or any(
+            isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in dims
+        ):
+            raise ValueError(f"steering_dims must be null or a non-empty list of positive ints, got {dims!r}")
+        variants["steering_dims"] = [int(w) for w in dims]
     if "action_frame" in variants and variants["action_frame"] not in ACTION_FRAMES:
         raise ValueError(f"action_frame must be one of {ACTION_FRAMES}, got {variants['action_frame']!r}")
     if "angle_encoding" in variants and variants["angle_encoding"] not in ANGLE_ENCODINGS:

@@ -1,0 +1,105 @@
+"""The fine-tuning configuration: one typed dataclass whose field docs are `python -m training.finetune --help`.
+
+Seed ranges: training episodes start at `train_seed_start` (10,000,000: far from every evaluation
+range), periodic evaluation uses 400000.. (disjoint from the held-out 200000.. and 600000.. and from
+the tuning range 300000..).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from training.cli import build_parser, command_line, option
+from training.ppo import PPOSettings
+
+PROG = "python -m training.finetune"
+
+
+@dataclass
+class FinetuneConfig:
+    """Everything that defines a fine-tuning run."""
+
+    init: str = option("models/flow", "flow checkpoint stem whose start noise is steered (its weights stay frozen)")
+    name: str = option("flow-dsrl", "run name; outputs go to OUT_DIR/NAME")
+    out_dir: str = option("runs", "parent folder of run folders")
+    iterations: int = option(1000, "PPO iterations (each: rollout_decisions chunks in every env, then the update)")
+    num_envs: int = option(128, "envs stepped in lockstep")
+    rollout_decisions: int = option(8, "chunks per env between updates")
+    steering_dims: str = option("256,256", "hidden widths of the steering MLP (comma-separated)")
+    critic_dims: str = option("256,256", "hidden widths of the critic MLP (comma-separated)")
+    lr: float = option(3e-4, "Adam learning rate of the steering")
+    critic_lr: float = option(1e-3, "Adam learning rate of the critic")
+    gamma: float = option(0.99, "discount per decision (one chunk)")
+    gae_lambda: float = option(0.95, "GAE lambda")
+    clip: float = option(0.2, "PPO ratio clip")
+    epochs: int = option(4, "PPO epochs per iteration")
+    minibatch: int = option(256, "PPO minibatch size")
+    entropy_coef: float = option(0.0, "entropy bonus of the steering's Gaussian")
+    success_bonus: float = option(1.0, "reward added when a chunk lands the block (coverage > 0.95)")
+    flow_num_steps: int = option(10, "Euler steps of the frozen flow")
+    train_seed_start: int = option(10_000_000, "first training episode seed (episodes use consecutive seeds)")
+    eval_every: int = option(50, "evaluate (and checkpoint) every N iterations (0: only at the end)")
+    eval_episodes: int = option(200, "episodes per evaluation")
+    eval_seed: int = option(400_000, "first evaluation episode seed (never a held-out one)")
+    log_every: int = option(5, "write a log.jsonl record every N iterations")
+    seed: int = option(0, "seed of torch (start noise, minibatch order, initialization)")
+    threads: int = option(1, "torch intra-op threads")
+    progress: bool = option(True, "show a tqdm progress bar on stderr")
+
+    def __post_init__(self) -> None:
+        positive = ("iterations", "num_envs", "rollout_decisions", "epochs", "minibatch", "flow_num_steps", "eval_episodes", "log_every", "threads")
+        for name in positive:
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("lr", "critic_lr", "clip"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("gamma", "gae_lambda"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+        if self.eval_every < 0 or self.train_seed_start < 0 or self.eval_seed < 0 or self.seed < 0:
+            raise ValueError("eval_every, train_seed_start, eval_seed and seed must be >= 0")
+        self.steering_dims_list()
+        self.critic_dims_list()
+
+    def steering_dims_list(self) -> list[int]:
+        """`steering_dims` as a list of widths."""
+        return _widths("steering_dims", self.steering_dims)
+
+    def critic_dims_list(self) -> list[int]:
+        """`critic_dims` as a list of widths."""
+        return _widths("critic_dims", self.critic_dims)
+
+    def ppo_settings(self) -> PPOSettings:
+        """The PPO update's hyperparameters."""
+        return PPOSettings(self.gamma, self.gae_lambda, self.clip, self.epochs, self.minibatch, self.entropy_coef)
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict of every field."""
+        return asdict(self)
+
+    def command(self) -> str:
+        """The command that reproduces this config."""
+        return command_line(FinetuneConfig, PROG, self.to_dict(), always=("init", "name"))
+
+
+def parse_config(argv: list[str] | None = None) -> FinetuneConfig:
+    """Parse command-line flags into a validated FinetuneConfig (argparse reports bad values)."""
+    parser = build_parser(FinetuneConfig, PROG, "Fine-tune a flow policy beyond imitation: PPO on the env's reward in its noise space (DSRL), the flow frozen.")
+    args = parser.parse_args(argv)
+    try:
+        return FinetuneConfig(**vars(args))
+    except ValueError as exc:
+        parser.error(str(exc))
+        raise
+
+
+def _widths(name: str, text: str) -> list[int]:
+    try:
+        widths = [int(w) for w in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{name} must be comma-separated positive ints, got {text!r}") from None
+    if not widths or any(w < 1 for w in widths):
+        raise ValueError(f"{name} must be comma-separated positive ints, got {text!r}")
+    return widths
