@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -20,6 +21,8 @@ from training.data import (
     add_state_noise,
     load_replay,
     make_windows,
+    training_set,
+    training_windows,
     window_starts,
 )
 
@@ -71,6 +74,38 @@ def test_padded_windows_start_at_every_frame_and_repeat_the_last_action() -> Non
     np.testing.assert_array_equal(chunks[8], actions[[8, 9, 9, 9]])
     unpadded = make_windows(replay, horizon=4)[1]
     np.testing.assert_array_equal(chunks[3:7], unpadded)  # the windows inside episodes are unchanged
+
+
+RECORDED_RUNS = sorted((REPO / "models" / "runs").glob("*/last.json"))
+
+
+@pytest.mark.parametrize("card_path", RECORDED_RUNS, ids=[p.parent.name for p in RECORDED_RUNS])
+def test_training_set_reproduces_every_recorded_run_s_statistics(card_path: Path) -> None:
+    """The one-call dataset must normalize exactly as the runs behind the recorded scores did."""
+    card = json.loads(card_path.read_text())
+    config = card["config"]
+    if config.get("init"):
+        pytest.skip("fine-tuned runs keep their base's normalization")
+    frame = card["architecture"].get("action_frame", "absolute")
+    data = training_set(REPO / config["data"], config["horizon"], frame, bool(config.get("pad_episode_end")))
+    assert data.normalizer.to_dict() == card["normalization"]
+    assert len(data) == data.demo_windows == (25650 if config.get("pad_episode_end") else 23384)
+
+
+@pytest.mark.parametrize("frame, pad_end", [("absolute", False), ("agent", False), ("agent", True)])
+def test_training_set_is_the_normalized_windows(replay: Replay, frame: str, pad_end: bool) -> None:
+    data = training_set(DEFAULT_DATASET, 12, frame, pad_end, extra_data=(DEFAULT_DATASET,))
+    states, chunks = training_windows(replay, 12, frame, pad_end)
+    if frame == "agent":
+        np.testing.assert_array_equal(chunks, make_windows(replay, 12, pad_end)[1] - states[:, None, :2])
+    assert data.demo_windows == len(states) and len(data) == 2 * len(states)  # the extra store's windows follow
+    norm = data.normalizer
+    expected_states = torch.as_tensor(np.asarray(norm.normalize_state(states), dtype=np.float32))
+    expected_chunks = torch.as_tensor(np.asarray(norm.normalize_action(chunks), dtype=np.float32))
+    assert torch.equal(data.states, torch.cat([expected_states, expected_states]))
+    assert torch.equal(data.chunks, torch.cat([expected_chunks, expected_chunks]))
+    given = training_set(DEFAULT_DATASET, 12, frame, pad_end, normalizer=Normalizer.fit(replay.states * 2, replay.actions))
+    assert given.normalizer.state_mean[0] == pytest.approx(2 * norm.state_mean[0], rel=1e-5)  # a given normalizer wins
 
 
 def test_short_episodes_give_no_windows() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -71,7 +72,7 @@ def test_smoke_training_on_real_data(tmp_path, policy):
     assert last["kind"] == policy and last["name"] == policy and last["steps"] == 300
     assert last["config"] == config and last["evaluation"]["step"] == 300
     assert last["num_parameters"] == sum(p.numel() for p in last_policy.parameters())
-    assert last["wall_time_s"] > 0 and last["git_commit"]
+    assert last["wall_time_s"] > 0 and last["git_commit"] and last["finished"] is True
     _, best = load_checkpoint(run_dir / "best")
     assert best["evaluation"]["mean_max_reward"] == max(r["mean_max_reward"] for r in evals)
     assert best["steps"] == best["evaluation"]["step"]
@@ -146,6 +147,15 @@ def test_help_documents_every_field(capsys):
     assert exit_info.value.code == 0
     out = capsys.readouterr().out
     assert "--state-noise-schedule" in out and "std of Gaussian noise on normalized training states" in out
+
+
+def test_help_shows_each_default_once(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    assert "(default: None)" not in out and "(default: )" not in out and not re.search(r"\(default: [^)]*\) \(default:", out)
+    assert "--steps STEPS optimizer steps (global batches) (default: 200000)" in out
+    assert out.count("(default: POLICY-YYYYmmdd-HHMMSS)") == 1 and "--policy {mse,flow} policy kind: mse or flow --name" in out
 
 
 @pytest.mark.parametrize(

@@ -26,7 +26,9 @@ class TrainConfig:
     """Everything that defines a training run."""
 
     policy: str = field(default="", metadata={"help": "policy kind: mse or flow", "choices": POLICY_KINDS, "required": True})
-    name: str = _f("", "run name; outputs go to OUT_DIR/NAME (default: POLICY-YYYYmmdd-HHMMSS)")
+    name: str = _f("", "run name; outputs go to OUT_DIR/NAME, which must not exist yet (default: POLICY-YYYYmmdd-HHMMSS)")
+    resume: bool = _f(False, "continue the existing run NAME to its configured steps from its latest resumable state (same config)")
+    overwrite: bool = _f(False, "delete the existing run NAME and start it again")
     out_dir: str = _f("runs", "parent folder of run folders")
     data: str = _f("data/pusht_lowdim.zarr", "replay zarr with data/state, data/action, meta/episode_ends")
     extra_data: str = _f("", "comma-separated zarr stores (same layout, e.g. from training.collect) whose windows join the demonstrations'; normalization stays the demonstrations'")
@@ -52,6 +54,8 @@ class TrainConfig:
     action_horizon: int = _f(12, "actions of each chunk executed open loop in evaluation")
     flow_num_steps: int = _f(10, "flow: Euler steps when sampling in evaluation")
     log_every: int = _f(100, "write a log.jsonl record every N steps")
+    # about 10-30 s of flow training on 2 cores: what a SIGKILL can lose
+    checkpoint_every: int = _f(1000, "save a resumable state and the `last` checkpoint every N steps (0: only at evaluations and stops)")
     seed: int = _f(0, "seed of torch and numpy (DDP rank r uses seed + r for its noise)")
     # 1 thread: on an idle 2-core machine 2 threads gained only 5-25 %, on a loaded one they were 8x slower
     threads: int = _f(1, "torch intra-op threads per process (0: all cores / world size)")
@@ -77,6 +81,8 @@ class TrainConfig:
             (1 <= self.action_horizon <= self.horizon, f"action_horizon must be in [1, horizon={self.horizon}], got {self.action_horizon}"),
             (self.flow_num_steps >= 1, f"flow_num_steps must be >= 1, got {self.flow_num_steps}"),
             (self.log_every >= 1, f"log_every must be >= 1, got {self.log_every}"),
+            (self.checkpoint_every >= 0, f"checkpoint_every must be >= 0, got {self.checkpoint_every}"),
+            (not (self.resume and self.overwrite), "--resume and --overwrite exclude each other"),
             (self.seed >= 0, f"seed must be >= 0, got {self.seed}"),
             (self.threads >= 0, f"threads must be >= 0, got {self.threads}"),
         ]
@@ -100,12 +106,22 @@ class TrainConfig:
         return asdict(self)
 
 
+class HelpFormatter(argparse.HelpFormatter):
+    """Shows a flag's default once: not for required flags, empty defaults, or helps that already state it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "(default" in text or action.required or not action.option_strings or action.default in (None, "", argparse.SUPPRESS):
+            return text
+        return text + " (default: %(default)s)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """An argparse parser with one `--flag` per TrainConfig field, its help from the field doc."""
     parser = argparse.ArgumentParser(
         prog="python -m training.train",
         description="Train an MSE or flow-matching behavioral-cloning policy on Push-T (single process or torchrun DDP).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     for f in fields(TrainConfig):
         flag = "--" + f.name.replace("_", "-")
@@ -132,7 +148,7 @@ def command_line(config: dict[str, Any]) -> str:
 
     parts = ["python -m training.train"]
     for f in fields(TrainConfig):
-        if f.name not in config or f.name in ("progress",):
+        if f.name not in config or f.name in ("progress", "resume", "overwrite"):
             continue
         value, default = config[f.name], f.default
         if value == default and f.name not in ("policy", "name"):

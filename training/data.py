@@ -3,6 +3,7 @@
     replay = load_replay()                      # data/pusht_lowdim.zarr
     states, chunks = make_windows(replay)       # [23384, 5], [23384, 12, 2] on the real data
     norm = Normalizer.fit(replay.states, replay.actions)
+    data = training_set("data/pusht_lowdim.zarr", action_frame="agent")  # what a training loop needs, in one call
 
 Window t pairs the state at frame t with the actions of frames t..t+11 of the same episode.
 """
@@ -114,6 +115,47 @@ def make_windows(replay: Replay, horizon: int = HORIZON, pad_end: bool = False) 
         starts = window_starts(replay.episode_ends, horizon)
         chunk_index = starts[:, None] + np.arange(horizon)[None, :]
     return replay.states[starts].copy(), replay.actions[chunk_index]
+
+
+def training_windows(replay: Replay, horizon: int, action_frame: str, pad_end: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """States [W, 5] and the chunks [W, H, 2] a policy learns: env units, relative to the agent for action_frame="agent"."""
+    states, chunks = make_windows(replay, horizon=horizon, pad_end=pad_end)
+    if action_frame == "agent":
+        chunks = chunks - states[:, None, :2]
+    return states, chunks
+
+
+@dataclass(frozen=True)
+class TrainingSet:
+    """Normalized training windows, resident as float32 tensors (a few MB, so no DataLoader), and their normalizer."""
+
+    states: torch.Tensor  # [W, 5]
+    chunks: torch.Tensor  # [W, H, 2]
+    normalizer: Normalizer
+    demo_windows: int  # the first demo_windows rows come from the demonstrations, the rest from extra data
+
+    def __len__(self) -> int:
+        return len(self.states)
+
+
+def training_set(data: str | Path, horizon: int = HORIZON, action_frame: str = "absolute", pad_end: bool = False,
+                 extra_data: tuple[str | Path, ...] = (), normalizer: Normalizer | None = None) -> TrainingSet:
+    """The demonstrations' windows plus those of `extra_data`, normalized by `normalizer` or by statistics of the demonstrations alone."""
+    replay = load_replay(data)
+    states, chunks = training_windows(replay, horizon, action_frame, pad_end)
+    if normalizer is None:
+        # agent-frame chunks have their own statistics; absolute ones share the per-frame actions'
+        normalizer = Normalizer.fit(replay.states, chunks if action_frame == "agent" else replay.actions)
+    demo_windows = len(states)
+    for extra in extra_data:
+        extra_states, extra_chunks = training_windows(load_replay(extra), horizon, action_frame, pad_end)
+        states, chunks = np.concatenate([states, extra_states]), np.concatenate([chunks, extra_chunks])
+    return TrainingSet(
+        states=torch.as_tensor(np.asarray(normalizer.normalize_state(states), dtype=np.float32)),
+        chunks=torch.as_tensor(np.asarray(normalizer.normalize_action(chunks), dtype=np.float32)),
+        normalizer=normalizer,
+        demo_windows=demo_windows,
+    )
 
 
 def window_starts(episode_ends: np.ndarray, horizon: int = HORIZON) -> np.ndarray:

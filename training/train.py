@@ -1,52 +1,55 @@
 """Train an MSE or flow-matching behavioral-cloning policy on the Push-T demonstrations.
 
     python -m training.train --policy flow --name flow-200k
+    python -m training.train --policy flow --name flow-200k --resume      # after a stop or a crash
     torchrun --nproc_per_node=2 -m training.train --policy mse --threads 1
 
 Outputs in OUT_DIR/NAME: config.json, log.jsonl (train and eval records), learning_curve.png and the
-checkpoints `last` (the final weights) and `best` (best evaluation mean max reward), each a
-safetensors file with its JSON card. Under torchrun (gloo), every rank trains on its own slice of
-each global batch; only rank 0 logs, evaluates and saves.
+checkpoints `last` (the latest weights; its card says `finished`) and `best` (best evaluation mean max
+reward), each a safetensors file with its JSON card. The run folder's lifecycle (refused reuse,
+--resume, --overwrite, SIGTERM, periodic resumable state) is training.run's. Under torchrun (gloo),
+every rank trains on its own slice of each global batch; only rank 0 logs, evaluates and saves.
 """
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import sys
 import time
-from dataclasses import dataclass
-from datetime import datetime, timedelta
-from pathlib import Path
+from datetime import datetime
 from typing import Any
 
 import numpy as np
 import torch
-import torch.distributed as dist
 from torch import nn
 
 from training.config import TrainConfig, parse_config
+from training.distributed import Distributed, progress_bar
+from training.data import training_windows  # noqa: F401  (imported from here by tests/test_collect.py)
+from training.run import Run, RunStopped, pack_optimizer, pack_rng, unpack_optimizer, unpack_rng
+
+# fields that do not change what a run computes, so --resume accepts new values
+RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_every")
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Command-line entry point: parse the config and train."""
+    """Command-line entry point: parse the config and train; 2 on a bad setting, 128 + signal after a stop."""
     cfg = parse_config(argv)
     try:
-        train(cfg)
+        return train(cfg).exit_code()
     except (ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    return 0
 
 
-def train(cfg: TrainConfig) -> Path:
-    """Run one training as configured; returns the run folder."""
-    from training.checkpoint import git_commit, load_checkpoint, save_checkpoint
-    from training.data import Normalizer, load_replay
+def train(cfg: TrainConfig) -> Run:
+    """Run (or resume) one training as configured; returns its Run (folder in `.dir`)."""
+    from training.checkpoint import load_checkpoint, save_checkpoint, update_card
+    from training.data import Normalizer, training_set
     from training.policies import ActingPolicy, build_policy
 
-    ctx = _Distributed.start()
+    ctx = Distributed.start()
     try:
         if cfg.batch_size % ctx.world_size:
             raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {ctx.world_size} DDP ranks")
@@ -56,79 +59,90 @@ def train(cfg: TrainConfig) -> Path:
         if not cfg.name:
             # every rank must agree on the folder, so only rank 0 picks the timestamp
             cfg.name = ctx.broadcast_str(f"{cfg.policy}-{datetime.now():%Y%m%d-%H%M%S}")
-        run_dir = Path(cfg.out_dir) / cfg.name
-        if ctx.is_main:
-            if cfg.eval_every >= 0:
-                from training.evaluate import env_factory
+        if ctx.is_main and cfg.eval_every >= 0:
+            from training.evaluate import env_factory
 
-                env_factory(cfg.eval_env)()  # fail now, not after hours of training, if the env is missing
-            run_dir.mkdir(parents=True, exist_ok=True)
-            (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
-            print(f"config: {json.dumps(cfg.to_dict())}", file=sys.stderr)
-            print(f"run dir: {run_dir}  world size: {ctx.world_size}  threads: {torch.get_num_threads()}", file=sys.stderr)
+            env_factory(cfg.eval_env)()  # fail now, not after hours of training, if the env is missing
 
-        replay = load_replay(cfg.data)
         if cfg.init:
             policy, init_card = load_checkpoint(cfg.init)
             if init_card["kind"] != cfg.policy:
                 raise ValueError(f"{cfg.init} is a {init_card['kind']} checkpoint, not {cfg.policy}")
+            # the exported graph bakes the normalization in, so a fine-tuned policy keeps its base's
+            base_normalizer = Normalizer.from_dict(init_card["normalization"])
         else:
             policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, **cfg.architecture_overrides()})
-        states, chunks = training_windows(replay, cfg.horizon, policy.action_frame, cfg.pad_episode_end)
-        if cfg.init:
-            # the exported graph bakes the normalization in, so a fine-tuned policy keeps its base's
-            normalizer = Normalizer.from_dict(init_card["normalization"])
-        elif policy.action_frame == "agent":
-            normalizer = Normalizer.fit(replay.states, chunks)
-        else:
-            normalizer = Normalizer.fit(replay.states, replay.actions)
-        # the normalization comes from the demonstrations alone; extra data only adds windows
-        demo_windows = len(states)
-        for extra in filter(None, (path.strip() for path in cfg.extra_data.split(","))):
-            extra_states, extra_chunks = training_windows(load_replay(extra), cfg.horizon, policy.action_frame, cfg.pad_episode_end)
-            states, chunks = np.concatenate([states, extra_states]), np.concatenate([chunks, extra_chunks])
-        normalization = normalizer.to_dict()
-        if ctx.is_main:
-            print(f"windows: {len(states)} ({demo_windows} demonstration, {len(states) - demo_windows} extra)", file=sys.stderr)
-        # The whole dataset is a few MB: keep it resident as normalized tensors, no DataLoader.
-        states_n = torch.as_tensor(np.asarray(normalizer.normalize_state(states), dtype=np.float32))
-        chunks_n = torch.as_tensor(np.asarray(normalizer.normalize_action(chunks), dtype=np.float32))
-        num_windows = len(states_n)
-        if num_windows < cfg.batch_size:
-            raise ValueError(f"{cfg.data} has {num_windows} windows, fewer than batch_size {cfg.batch_size}")
-
+            base_normalizer = None
+        extra = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
+        data = training_set(cfg.data, cfg.horizon, policy.action_frame, cfg.pad_episode_end, extra, base_normalizer)
+        if len(data) < cfg.batch_size:
+            raise ValueError(f"{cfg.data} has {len(data)} windows, fewer than batch_size {cfg.batch_size}")
+        normalization = data.normalizer.to_dict()
         # sin/cos angle encoding needs the raw angle back from the normalized state; a no-op otherwise
-        policy.set_input_normalization(normalizer.state_mean, normalizer.state_std)
+        policy.set_input_normalization(data.normalizer.state_mean, data.normalizer.state_std)
         policy.train()
         model: nn.Module = _LossModule(policy)
         if ctx.world_size > 1:
             model = nn.parallel.DistributedDataParallel(model)
         # fused: 10-20% faster per step than foreach on CPU for these MLPs (measured)
         optimizer = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
-        if ctx.is_main:
-            num_parameters = sum(p.numel() for p in policy.parameters())
-            print(f"{cfg.policy} policy: {num_parameters} parameters, architecture {policy.architecture}", file=sys.stderr)
-
-        log = _RunLog(run_dir, enabled=ctx.is_main)
-        # kind, architecture, num_parameters and normalization are derived by save_checkpoint itself
-        card = {"name": cfg.policy, "config": cfg.to_dict(), "git_commit": git_commit()}
-        best_reward = -math.inf
-        local_batch = cfg.batch_size // ctx.world_size
-        batches_per_epoch = num_windows // cfg.batch_size
         permutation_rng = torch.Generator().manual_seed(cfg.seed)  # same on every rank
-        bar = _progress_bar(cfg.steps, enabled=ctx.is_main and cfg.progress)
 
-        start = time.perf_counter()
+        # every check that can fail has passed: only now may the run folder change
+        run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite,
+                        is_main=ctx.is_main, may_change=RESUMABLE_CHANGES)
+        first_step, best_reward, order = 1, None, None
+        state = run.load_state()
+        if state is not None:
+            saved_step, tensors, saved = state
+            if saved["world_size"] != ctx.world_size:
+                raise ValueError(f"{run.dir} ran on {saved['world_size']} ranks; resume it on as many, not {ctx.world_size}")
+            policy.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+            unpack_optimizer(optimizer, tensors, saved["optimizer"])
+            unpack_rng(tensors, {"permutation": permutation_rng})
+            if ctx.rank:
+                torch.set_rng_state(tensors[f"rng.rank{ctx.rank}.torch"])
+            first_step, best_reward = saved_step + 1, saved["best_reward"]
+            order, batch_in_epoch = tensors["epoch_order"], saved["batch_in_epoch"]
+            run.log({"type": "resume", "step": saved_step})
+        if ctx.is_main:
+            print(f"world size: {ctx.world_size}  threads: {torch.get_num_threads()}  windows: {len(data)} "
+                  f"({data.demo_windows} demonstration, {len(data) - data.demo_windows} extra)", file=sys.stderr)
+            print(f"{cfg.policy} policy: {sum(p.numel() for p in policy.parameters())} parameters, "
+                  f"architecture {policy.architecture}", file=sys.stderr)
+
+        # kind, architecture, num_parameters and normalization are derived by save_checkpoint itself
+        card = {"name": cfg.policy, "config": cfg.to_dict()}
+        local_batch = cfg.batch_size // ctx.world_size
+        batches_per_epoch = len(data) // cfg.batch_size
+        bar = progress_bar(cfg.steps, first_step - 1, enabled=ctx.is_main and cfg.progress)
+
+        def save(step: int, evaluation: dict[str, Any] | None) -> None:
+            """The resumable state of `step` and the `last` checkpoint (not finished)."""
+            rng_states = ctx.gather(torch.get_rng_state())
+            if not ctx.is_main:
+                return
+            save_checkpoint(str(run.dir / "last"), policy, normalization, **card, steps=step,
+                            wall_time_s=run.elapsed_s, evaluation=evaluation, finished=False)
+            optimizer_tensors, optimizer_json = pack_optimizer(optimizer)
+            tensors = {**{f"model.{k}": v for k, v in policy.state_dict().items()}, **optimizer_tensors,
+                       **pack_rng({"permutation": permutation_rng}), "epoch_order": order,
+                       **{f"rng.rank{r}.torch": t for r, t in enumerate(rng_states) if r}}
+            run.save_state(step, tensors, {"optimizer": optimizer_json, "best_reward": best_reward,
+                                           "batch_in_epoch": batch_in_epoch, "world_size": ctx.world_size})
+            _plot(run.records, run.dir / "learning_curve.png")
+
         interval_start, interval_loss, interval_steps = time.perf_counter(), 0.0, 0
         interval_eval_s = 0.0  # evaluation time inside the interval, kept out of ms_per_step
-        batch_in_epoch = batches_per_epoch  # forces a fresh permutation at step 0
-        for step in range(1, cfg.steps + 1):
+        if order is None:
+            batch_in_epoch = batches_per_epoch  # forces a fresh permutation at the first step
+        step = first_step - 1
+        for step in range(first_step, cfg.steps + 1):
             if batch_in_epoch == batches_per_epoch:
-                # each global batch is split in rank-sized slices: rank r takes slice r
-                order = torch.randperm(num_windows, generator=permutation_rng)[: batches_per_epoch * cfg.batch_size]
-                order = order.view(batches_per_epoch, cfg.batch_size)[:, ctx.rank * local_batch : (ctx.rank + 1) * local_batch]
+                order = torch.randperm(len(data), generator=permutation_rng)[: batches_per_epoch * cfg.batch_size]
                 batch_in_epoch = 0
-            idx = order[batch_in_epoch]
+            # each global batch is split in rank-sized slices: rank r takes slice r
+            idx = order.view(batches_per_epoch, cfg.batch_size)[batch_in_epoch, ctx.rank * local_batch : (ctx.rank + 1) * local_batch]
             batch_in_epoch += 1
 
             progress = (step - 1) / cfg.steps
@@ -136,11 +150,11 @@ def train(cfg: TrainConfig) -> Path:
             for group in optimizer.param_groups:
                 group["lr"] = lr
             noise_std = state_noise_std(cfg, progress)
-            state_batch = states_n[idx]
+            state_batch = data.states[idx]
             if noise_std > 0:
                 state_batch = state_batch + noise_std * torch.randn_like(state_batch)
 
-            loss = model(state_batch, chunks_n[idx])
+            loss = model(state_batch, data.chunks[idx])
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -158,54 +172,59 @@ def train(cfg: TrainConfig) -> Path:
             if step % cfg.log_every == 0 or step == cfg.steps:
                 ms = 1000 * (time.perf_counter() - interval_start - interval_eval_s) / interval_steps
                 mean_loss = ctx.mean(interval_loss / interval_steps)  # over all ranks' slices
-                log.write({"type": "train", "step": step, "loss": mean_loss, "lr": lr,
-                           "state_noise": noise_std, "ms_per_step": ms})
+                run.log({"type": "train", "step": step, "loss": mean_loss, "lr": lr,
+                         "state_noise": noise_std, "ms_per_step": ms})
                 interval_loss, interval_steps, interval_eval_s = 0.0, 0, 0.0
                 interval_start = time.perf_counter()
 
             evaluate_now = cfg.eval_every >= 0 and (
                 step == cfg.steps or (cfg.eval_every > 0 and step % cfg.eval_every == 0)
             )
+            evaluation = None
             if evaluate_now:
                 eval_start = time.perf_counter()
                 if ctx.is_main:
-                    evaluation = _evaluate(policy, normalization, cfg, ActingPolicy, step)
-                    log.write({"type": "eval", **evaluation})
-                    if evaluation["mean_max_reward"] > best_reward:
+                    try:
+                        with run.interruptible():  # a stop must not wait for a long evaluation
+                            evaluation = _evaluate(policy, normalization, cfg, ActingPolicy, step)
+                    except RunStopped:
+                        pass  # this step's evaluation is lost; its weights are saved below
+                if evaluation is not None:
+                    run.log({"type": "eval", **evaluation})
+                    if best_reward is None or evaluation["mean_max_reward"] > best_reward:
                         best_reward = evaluation["mean_max_reward"]
-                        save_checkpoint(str(run_dir / "best"), policy, normalization, **card, steps=step,
-                                        wall_time_s=time.perf_counter() - start, evaluation=evaluation)
-                    # `last` is rewritten at every evaluation, so a crashed run still leaves recent weights
-                    save_checkpoint(str(run_dir / "last"), policy, normalization, **card, steps=step,
-                                    wall_time_s=time.perf_counter() - start, evaluation=evaluation)
-                    log.plot()
+                        save_checkpoint(str(run.dir / "best"), policy, normalization, **card, steps=step,
+                                        wall_time_s=run.elapsed_s, evaluation=evaluation)
                     if bar is not None:
                         bar.set_postfix(loss=f"{loss_value:.4f}", eval=f"{evaluation['mean_max_reward']:.3f}")
                 ctx.barrier()
                 interval_eval_s += time.perf_counter() - eval_start
 
+            stop = ctx.any(run.stop_requested)  # every rank must stop at the same step
+            if step < cfg.steps and (stop or evaluate_now or (cfg.checkpoint_every and step % cfg.checkpoint_every == 0)):
+                save(step, evaluation or _last_eval(run.records))
+            if stop:
+                break
+
         if bar is not None:
             bar.close()
-        if ctx.is_main:
-            last_eval = log.last_eval if cfg.eval_every >= 0 else None
-            save_checkpoint(str(run_dir / "last"), policy, normalization, **card, steps=cfg.steps,
-                            wall_time_s=time.perf_counter() - start, evaluation=last_eval)
-            log.plot()
-            print(f"done: {cfg.steps} steps in {time.perf_counter() - start:.0f} s; outputs in {run_dir}", file=sys.stderr)
+        if step == cfg.steps:
+            if ctx.is_main:
+                save_checkpoint(str(run.dir / "last"), policy, normalization, **card, steps=cfg.steps,
+                                wall_time_s=run.elapsed_s, evaluation=_last_eval(run.records), finished=True)
+                if (run.dir / "best.json").is_file():
+                    update_card(run.dir / "best", finished=True)
+                _plot(run.records, run.dir / "learning_curve.png")
+                print(f"done: {cfg.steps} steps in {run.elapsed_s:.0f} s; outputs in {run.dir}", file=sys.stderr)
+            run.finish(cfg.steps)
+        elif ctx.is_main:
+            print(f"stopped by {run.stop_signal} at step {step} of {cfg.steps}; continue with the same command "
+                  f"and --resume (state in {run.dir})", file=sys.stderr)
+        run.close()
         ctx.barrier()
-        return run_dir
+        return run
     finally:
         ctx.stop()
-
-
-def training_windows(replay: Any, horizon: int, action_frame: str, pad_end: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """States [W, 5] and the chunks [W, H, 2] a policy learns: in env units, relative to the agent for action_frame="agent"."""
-    from training.data import make_windows
-
-    states, chunks = make_windows(replay, horizon=horizon, pad_end=pad_end)
-    if action_frame == "agent":
-        chunks = chunks - states[:, None, :2]
-    return states, chunks
 
 
 def state_noise_std(cfg: TrainConfig, progress: float) -> float:
@@ -263,110 +282,41 @@ def _evaluate(policy: nn.Module, normalization: dict, cfg: TrainConfig, acting_c
     }
 
 
-class _RunLog:
-    """log.jsonl and learning_curve.png of one run (no-ops on non-main ranks)."""
-
-    def __init__(self, run_dir: Path, enabled: bool) -> None:
-        self.enabled = enabled
-        self.path = run_dir / "log.jsonl"
-        self.records: list[dict[str, Any]] = []
-        if enabled:
-            self.path.write_text("")
-
-    def write(self, record: dict[str, Any]) -> None:
-        if not self.enabled:
-            return
-        self.records.append(record)
-        with self.path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
-
-    @property
-    def last_eval(self) -> dict[str, Any] | None:
-        evals = [r for r in self.records if r["type"] == "eval"]
-        return {k: v for k, v in evals[-1].items() if k != "type"} if evals else None
-
-    def plot(self) -> None:
-        if not self.enabled:
-            return
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        train = [r for r in self.records if r["type"] == "train"]
-        evals = [r for r in self.records if r["type"] == "eval"]
-        fig, (ax_loss, ax_eval) = plt.subplots(1, 2, figsize=(11, 4))
-        ax_loss.plot([r["step"] for r in train], [r["loss"] for r in train], lw=1)
-        ax_loss.set(xlabel="step", ylabel="training loss", title="loss", yscale="log")
-        ax_loss.grid(alpha=0.3)
-        if evals:
-            steps = [r["step"] for r in evals]
-            ax_eval.plot(steps, [r["mean_max_reward"] for r in evals], "o-", label="mean max reward")
-            ax_eval.fill_between(steps, [r["mean_max_reward_ci95"][0] for r in evals],
-                                 [r["mean_max_reward_ci95"][1] for r in evals], alpha=0.2)
-            ax_eval.plot(steps, [r["success_rate"] for r in evals], "s-", label="success rate")
-            ax_eval.legend(loc="upper left")
-            first = evals[0]["seeds"]
-            ax_eval.set_title(f"evaluation ({len(first)} episodes, seeds {first[0]}..{first[-1]})")
-        else:
-            ax_eval.set_title("evaluation (none yet)")
-        last_step = max([r["step"] for r in self.records], default=1)
-        ax_eval.set(xlabel="step", ylim=(0, 1), xlim=(0, last_step * 1.02))
-        ax_eval.grid(alpha=0.3)
-        fig.tight_layout()
-        fig.savefig(self.path.with_name("learning_curve.png"), dpi=100)
-        plt.close(fig)
+def _last_eval(records: list[dict[str, Any]]) -> dict[str, Any] | None:
+    evals = [r for r in records if r["type"] == "eval"]
+    return {k: v for k, v in evals[-1].items() if k != "type"} if evals else None
 
 
-@dataclass
-class _Distributed:
-    """The process group under torchrun (gloo), or a single process."""
+def _plot(records: list[dict[str, Any]], path: Any) -> None:
+    """learning_curve.png: training loss and evaluation scores against steps."""
+    import matplotlib
 
-    rank: int = 0
-    world_size: int = 1
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
 
-    @property
-    def is_main(self) -> bool:
-        return self.rank == 0
-
-    @classmethod
-    def start(cls) -> _Distributed:
-        world_size = int(os.environ.get("WORLD_SIZE", "1"))
-        if world_size <= 1:
-            return cls()
-        # evaluation on rank 0 can take minutes while the others wait at a barrier
-        dist.init_process_group("gloo", timeout=timedelta(hours=2))
-        return cls(rank=dist.get_rank(), world_size=dist.get_world_size())
-
-    def barrier(self) -> None:
-        if self.world_size > 1:
-            dist.barrier()
-
-    def mean(self, value: float) -> float:
-        if self.world_size == 1:
-            return value
-        box = torch.tensor([value], dtype=torch.float64)
-        dist.all_reduce(box)
-        return box.item() / self.world_size
-
-    def broadcast_str(self, value: str) -> str:
-        if self.world_size == 1:
-            return value
-        box = [value]
-        dist.broadcast_object_list(box, src=0)
-        return box[0]
-
-    def stop(self) -> None:
-        if self.world_size > 1 and dist.is_initialized():
-            dist.destroy_process_group()
-
-
-def _progress_bar(total: int, enabled: bool):
-    if not enabled:
-        return None
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc="train", unit="step", file=sys.stderr, mininterval=0.5)
+    train = [r for r in records if r["type"] == "train"]
+    evals = [r for r in records if r["type"] == "eval"]
+    fig, (ax_loss, ax_eval) = plt.subplots(1, 2, figsize=(11, 4))
+    ax_loss.plot([r["step"] for r in train], [r["loss"] for r in train], lw=1)
+    ax_loss.set(xlabel="step", ylabel="training loss", title="loss", yscale="log")
+    ax_loss.grid(alpha=0.3)
+    if evals:
+        steps = [r["step"] for r in evals]
+        ax_eval.plot(steps, [r["mean_max_reward"] for r in evals], "o-", label="mean max reward")
+        ax_eval.fill_between(steps, [r["mean_max_reward_ci95"][0] for r in evals],
+                             [r["mean_max_reward_ci95"][1] for r in evals], alpha=0.2)
+        ax_eval.plot(steps, [r["success_rate"] for r in evals], "s-", label="success rate")
+        ax_eval.legend(loc="upper left")
+        first = evals[0]["seeds"]
+        ax_eval.set_title(f"evaluation ({len(first)} episodes, seeds {first[0]}..{first[-1]})")
+    else:
+        ax_eval.set_title("evaluation (none yet)")
+    last_step = max([r["step"] for r in records], default=1)
+    ax_eval.set(xlabel="step", ylim=(0, 1), xlim=(0, last_step * 1.02))
+    ax_eval.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 if __name__ == "__main__":
