@@ -1,6 +1,6 @@
-"""Print the markdown table of every recorded training run's held-out scores (models/runs/*/).
+"""Print the markdown table of every recorded training run's held-out scores (records/*/).
 
-    python scripts/results_table.py [--models-dir models] [--env pusht]
+    python scripts/results_table.py [--records-dir records] [--models-dir models] [--env pusht]
 
 One row per run and checkpoint (final, best), from the cards that `python -m training.ship` wrote,
 so the numbers in models/README.md come from a command. A run shipped as models/NAME.* says so.
@@ -19,13 +19,14 @@ DEFAULT_ARCH_KEYS = ("hidden_dims", "horizon", "action_dim", "state_dim")
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--models-dir", default="models", help="folder of the shipped policies and their run records")
+    parser.add_argument("--records-dir", default="records", help="folder of the run records that training.ship writes")
+    parser.add_argument("--models-dir", default="models", help="folder of the shipped policies")
     parser.add_argument("--env", nargs="+", default=["pusht", "gym-pusht"], help="envs whose scores to list")
     args = parser.parse_args(argv)
     models = Path(args.models_dir)
-    records = sorted(p for p in (models / "runs").glob("*") if (p / "last.json").is_file())
+    records = sorted(p for p in Path(args.records_dir).glob("*") if (p / "last.json").is_file())
     if not records:
-        print(f"error: no run records (runs/*/last.json) in {models}", file=sys.stderr)
+        print(f"error: no run records (*/last.json) in {args.records_dir}", file=sys.stderr)
         return 2
     shipped = {}
     for path in models.glob("*.json"):
@@ -37,7 +38,10 @@ def main(argv: list[str] | None = None) -> int:
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for record in records:
         for label in ("final", "best"):
-            card = json.loads((record / ("last.json" if label == "final" else "best.json")).read_text())
+            path = record / ("last.json" if label == "final" else "best.json")
+            if not path.is_file():
+                continue
+            card = json.loads(path.read_text())
             for env, score in (card.get("heldout_evaluation") or {}).items():
                 if env not in args.env:
                     continue

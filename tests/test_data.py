@@ -76,7 +76,7 @@ def test_padded_windows_start_at_every_frame_and_repeat_the_last_action() -> Non
     np.testing.assert_array_equal(chunks[3:7], unpadded)  # the windows inside episodes are unchanged
 
 
-RECORDED_RUNS = sorted((REPO / "models" / "runs").glob("*/last.json"))
+RECORDED_RUNS = sorted((REPO / "records").glob("*/last.json"))
 
 
 @pytest.mark.parametrize("card_path", RECORDED_RUNS, ids=[p.parent.name for p in RECORDED_RUNS])

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import gzip
 import json
+import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -27,8 +32,8 @@ def run(tmp_path_factory) -> Path:
 
 @pytest.mark.slow
 def test_ship_records_scores_and_ships_with_a_noise_scale(run, tmp_path, capsys):
-    models = tmp_path / "models"
-    code = ship_main(["--run", str(run), "--name", "tiny", "--models-dir", str(models), "--episodes", "2",
+    models, records = tmp_path / "models", tmp_path / "records"
+    code = ship_main(["--run", str(run), "--name", "tiny", "--models-dir", str(models), "--records-dir", str(records), "--episodes", "2",
                       "--envs", "pusht", "--noise-scale", "0.5", "--note", "a test"])
     assert code == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
@@ -43,10 +48,52 @@ def test_ship_records_scores_and_ships_with_a_noise_scale(run, tmp_path, capsys)
     assert ship_command == f"python -m training.ship --run {run} --name tiny --noise-scale 0.5"
     assert shipped["heldout_evaluation"]["pusht"]["mean_max_reward"] == lines[0]["mean_max_reward"]
     assert (models / "tiny_rollout.gif").stat().st_size > 1000
-    record = models / "runs" / "tiny"
+    record = records / "tiny"
+    assert shipped["run"] == str(record) and shipped["finished"] is True
     assert load_card(record / "last")["recipe_changes"] == "a test"
     assert load_card(record / "best")["heldout_evaluation"]["pusht"]["episodes"] == 2
-    assert (record / "best.safetensors").is_file() and (record / "log.jsonl").is_file()
+    assert sorted(p.name for p in record.iterdir()) == ["best.json", "best.safetensors", "last.json", "learning_curve.png", "log.jsonl.gz"]
+    log = [json.loads(line) for line in gzip.decompress((record / "log.jsonl.gz").read_bytes()).splitlines()]
+    assert log == [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert sorted(p.name for p in models.iterdir()) == ["tiny.json", "tiny.onnx", "tiny.safetensors", "tiny_rollout.gif"]
+
+
+@pytest.mark.slow
+def test_ship_keeps_a_better_shipped_policy_unless_forced(run, tmp_path, capsys):
+    """The real shipped flow (0.927 on seeds 200000..200099) against the 40-step run."""
+    models, records = tmp_path / "models", tmp_path / "records"
+    models.mkdir()
+    for suffix in (".json", ".onnx", ".safetensors"):
+        shutil.copyfile(REPO / "models" / f"flow{suffix}", models / f"p{suffix}")
+    before = {p.name: p.read_bytes() for p in models.iterdir()}
+    common = ["--run", str(run), "--name", "p", "--models-dir", str(models), "--records-dir", str(records), "--envs", "pusht"]
+    assert ship_main(common) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and err.startswith(f"error: {models / 'p'} scores 0.927 mean max reward"), err
+    assert "this run 0." in err and "--force replaces it" in err
+    assert ship_main([*common, "--episodes", "2"]) == 2  # scored on other seeds: no comparison, no replacement
+    assert "cannot be compared" in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in models.iterdir()} == before and not records.exists()
+
+    assert ship_main([*common, "--episodes", "2", "--force"]) == 0
+    assert load_card(models / "p")["steps"] == 40 and (records / "tiny" / "last.json").is_file()
+    assert sorted(p.name for p in models.iterdir()) == ["p.json", "p.onnx", "p.safetensors", "p_rollout.gif"]
+
+
+@pytest.mark.slow
+def test_ship_refuses_an_unfinished_run(tmp_path, capsys):
+    args = ["--policy", "mse", "--name", "cut", "--out-dir", str(tmp_path), "--data", str(DATA), "--steps", "100000",
+            "--batch-size", "32", "--eval-every", "-1", "--checkpoint-every", "10", "--no-progress", "--arch", '{"hidden_dims": [32]}']
+    proc = subprocess.Popen([sys.executable, "-m", "training.train", *args], cwd=REPO, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not (tmp_path / "cut" / "last.json").is_file() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.kill()  # as a crash or an out-of-memory kill would
+    proc.wait(timeout=30)
+    assert ship_main(["--run", str(tmp_path / "cut"), "--name", "cut", "--models-dir", str(tmp_path / "models")]) == 2
+    err = capsys.readouterr().err
+    assert "is not finished (its last checkpoint is at step" in err and "of 100,000" in err and "--resume" in err
+    assert not (tmp_path / "models" / "cut.json").exists()
 
 
 def test_ship_of_an_unfinished_run_is_a_clear_error(tmp_path, capsys):
