@@ -5,11 +5,12 @@
 K envs step in lockstep with the project's one rollout runner (`pusht.rollout.run_episodes`); each
 decision step sends ONE batched `POST /act` for every env still running, and each returned chunk is
 executed open loop for --action-horizon steps. Reproducible: episode i is reset with seed
-`--seed + i`, and decision step d sends request seed `pusht.rollout.decision_seed(--seed, d)`, from
-which the service draws the flow noise; `python -m training.evaluate` applies the same rules in
-process, so the same model gives the same score both ways.
+`--seed + i`, and its decision d sends, in that request's `seeds`, the row seed
+`pusht.rollout.decision_seed(--seed + i, d)`, from which the service draws that row's flow noise;
+`python -m training.evaluate` applies the same rules in process, so the same model gives the same
+episodes both ways, whatever --num-envs. `--out FILE` writes one JSON line per episode.
 
-Imports only the standard library, numpy, httpx, tqdm, imageio (for --gif) and `pusht`: no torch.
+Imports only the standard library, numpy, httpx, tqdm, Pillow (for --gif) and `pusht`: no torch.
 Errors (unreachable server, timeout, 4xx/5xx answer, bad URL) end with one line on stderr and exit 2.
 """
 
@@ -17,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -28,18 +28,16 @@ import httpx
 import numpy as np
 
 try:
-    from pusht.rollout import RolloutSummary, episode_seeds, run_episodes
+    import pusht.rollout  # noqa: F401
 except ModuleNotFoundError as exc:
     if exc.name != "pusht":
         raise
     # Run as a script from a checkout that was not pip-installed: the repo root holds `pusht`.
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from pusht.rollout import RolloutSummary, episode_seeds, run_episodes
+from pusht.gif import FPS, annotated_frame, write_gif as _write_gif
+from pusht.rollout import RolloutSummary, card_id, check_output_path, episode_seeds, run_episodes, write_episode_records
 
 EXIT_ERROR = 2
-GIF_FPS = 10
-GIF_FRAME_STRIDE = 2  # keep every 2nd control step: half the file, still smooth at 10 fps
-GIF_PIXEL_STRIDE = 2  # halve the rendered frame's width and height
 _DETAIL_CHARS = 300
 
 
@@ -65,10 +63,14 @@ class HttpPolicy:
         self.client = httpx.Client(headers=headers, timeout=httpx.Timeout(timeout))
         self.latencies_s: list[float] = []
 
-    def __call__(self, states: np.ndarray, request_seed: int) -> np.ndarray:
-        """POST the batch of states with the request seed; return actions float32 [B, H, 2]."""
+    def __call__(self, states: np.ndarray, seeds: list[int]) -> np.ndarray:
+        """POST the batch of states with one seed per row; return actions float32 [B, H, 2]."""
         # float32 -> Python float -> JSON is exact, so the server sees the same float32 states.
-        payload = {"policy": self.policy, "states": np.asarray(states, dtype=np.float32).tolist(), "seed": int(request_seed)}
+        payload = {
+            "policy": self.policy,
+            "states": np.asarray(states, dtype=np.float32).tolist(),
+            "seeds": [int(s) for s in seeds],
+        }
         start = time.perf_counter()
         try:
             response = self.client.post(self.endpoint, json=payload)
@@ -96,6 +98,23 @@ class HttpPolicy:
             self.on_response(self.requests, self.latencies_s[-1])
         return actions
 
+    def card_id(self) -> str:
+        """The served policy's card id (`pusht.results.card_id`) from `GET /policies`."""
+        url = self.endpoint[: -len("/act")] + "/policies"
+        try:
+            response = self.client.get(url)
+        except httpx.HTTPError as exc:
+            raise ClientError(f"GET {url} failed: {type(exc).__name__}: {_one_line(exc)}") from None
+        if response.status_code >= 400:
+            raise ClientError(f"GET {url} -> {response.status_code} {response.reason_phrase}: {_error_detail(response)}")
+        try:
+            info = {p["name"]: p for p in response.json()["policies"]}
+        except (ValueError, TypeError, KeyError) as exc:
+            raise ClientError(f"GET {url}: unexpected answer ({type(exc).__name__}: {_one_line(exc)})") from None
+        if self.policy not in info:
+            raise ClientError(f"GET {url}: the service has no policy {self.policy!r} (it has {sorted(info)})")
+        return card_id(self.policy, info[self.policy].get("git_commit"), info[self.policy].get("steps"))
+
     @property
     def requests(self) -> int:
         """Number of answered requests."""
@@ -119,6 +138,7 @@ def main(argv: list[str] | None = None) -> int:
             max_steps=args.max_steps,
             action_horizon=args.action_horizon,
             gif=args.gif,
+            out=args.out,
             api_key=args.api_key,
             timeout=args.timeout,
             progress=not args.no_progress,
@@ -126,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     except ClientError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    except ValueError as exc:  # the runner's checks: bad arguments or malformed actions from the server
+    except ValueError as exc:  # the runner's and path checks: bad arguments or malformed actions from the server
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_ERROR
     except OSError as exc:  # e.g. the GIF path cannot be written
@@ -151,8 +171,12 @@ def rollout(
     api_key: str | None = None,
     timeout: float = 30.0,
     progress: bool = True,
+    out: str | Path | None = None,
 ) -> dict[str, Any]:
-    """Play episodes seed..seed+episodes-1 against the service at `url`; return the JSON report."""
+    """Play episodes seed..seed+episodes-1 against the service at `url`; return the JSON report.
+
+    With `out`, one JSON line per episode goes there; with `gif`, the first episode (both paths printed on stderr).
+    """
     for name, value in (("episodes", episodes), ("num_envs", num_envs), ("max_steps", max_steps), ("action_horizon", action_horizon)):
         if value < 1:
             raise ClientError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
@@ -160,28 +184,33 @@ def rollout(
         raise ClientError(f"--timeout must be positive, got {timeout}")
     if seed < 0:
         raise ClientError(f"--seed must be non-negative, got {seed}")
-    if gif is not None:
-        _check_writable(Path(gif))  # before the rollout, not after minutes of it
+    # the paths are checked before the rollout, not after minutes of it
+    gif = check_output_path("--gif", gif) if gif is not None else None
+    out = check_output_path("--out", out) if out is not None else None
     seeds = episode_seeds(seed, episodes)
     bar = _ProgressBar(len(seeds)) if progress else None
     act = HttpPolicy(url, policy, api_key=api_key, timeout=timeout, on_response=bar.on_response if bar else None)
     try:
+        card = act.card_id() if out is not None else None
         summary = run_episodes(
             act,
             seeds,
             num_envs=num_envs,
             max_steps=max_steps,
             action_horizon=action_horizon,
-            seed=seed,
             progress=bar if bar is not None else False,
-            record_frames=_shrink_frame if gif is not None else False,
+            record_frames=annotated_frame if gif is not None else False,
         )
     finally:
         act.close()
         if bar is not None:
             bar.close()
+    if out is not None:
+        write_episode_records(out, summary, policy, card)
+        print(f"episodes: wrote {len(summary.episodes)} lines to {out}", file=sys.stderr)
     if gif is not None:
         write_gif(summary.frames, gif)
+        print(f"gif: wrote {gif} ({len(summary.frames)} frames at {FPS} fps, real speed)", file=sys.stderr)
     return report(summary, act, url=url, policy=policy)
 
 
@@ -208,28 +237,21 @@ def act_endpoint(url: str) -> str:
 
 
 def write_gif(frames: list[np.ndarray], path: str | Path) -> None:
-    """Write every GIF_FRAME_STRIDE-th frame as a looping GIF at GIF_FPS."""
-    if not frames:
-        raise ClientError("no frames were recorded for the GIF")
-    import imageio.v3 as iio  # lazy: only --gif needs it
-
-    path = Path(path)
+    """Write every recorded frame as a looping GIF at the control rate (real speed)."""
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        iio.imwrite(path, np.stack(frames[::GIF_FRAME_STRIDE]), extension=".gif", duration=1000 / GIF_FPS, loop=0)
-    except OSError as exc:
+        _write_gif(frames, path)
+    except (OSError, ValueError) as exc:
         raise ClientError(f"cannot write the GIF {path}: {_one_line(exc)}") from None
 
 
-def _check_writable(path: Path) -> None:
-    if path.is_dir():
-        raise ClientError(f"--gif {path} is a directory; give a file path such as {path / 'episode.gif'}")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ClientError(f"--gif {path}: cannot create its folder: {_one_line(exc)}") from None
-    if not os.access(path.parent, os.W_OK):
-        raise ClientError(f"--gif {path}: its folder {path.parent} is not writable")
+class _HelpFormatter(argparse.HelpFormatter):
+    """Shows a flag's default once, and none for required flags, empty defaults or switches."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if action.required or action.default in (None, False, "", argparse.SUPPRESS):
+            return text
+        return text + " (default: %(default)s)"
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -238,20 +260,22 @@ def _parser() -> argparse.ArgumentParser:
         description=(
             "Roll out a served Push-T policy over HTTP: K envs in lockstep, one batched POST /act per "
             "decision step, each 12-action chunk executed open loop. Prints ONE JSON line with the scores. "
-            "Episode i uses env seed SEED+i; decision step d sends request seed "
-            "pusht.rollout.decision_seed(SEED, d), so the same command gives the same numbers."
+            "Episode i uses env seed SEED+i; its decision d sends row seed pusht.rollout.decision_seed(SEED+i, d) "
+            "in the request's seeds, so the same command gives the same episodes, whatever --num-envs."
         ),
+        formatter_class=_HelpFormatter,
     )
     parser.add_argument("--url", required=True, help="base URL of the service, e.g. http://127.0.0.1:8000")
-    parser.add_argument("--policy", default="flow", help="policy name served by the service (default: flow)")
-    parser.add_argument("--episodes", type=int, default=100, help="number of episodes, env seeds SEED..SEED+N-1 (default: 100)")
-    parser.add_argument("--num-envs", type=int, default=100, help="envs stepped in lockstep, one request per decision for all (default: 100)")
-    parser.add_argument("--seed", type=int, default=200000, help="first episode seed; also seeds the request seeds (default: 200000, the held-out seeds)")
-    parser.add_argument("--max-steps", type=int, default=300, help="episode step limit (default: 300)")
-    parser.add_argument("--action-horizon", type=int, default=12, help="actions of each chunk executed open loop (default: 12)")
-    parser.add_argument("--gif", default=None, metavar="PATH", help="write the first episode as an animated GIF to PATH")
+    parser.add_argument("--policy", default="flow", help="policy name served by the service")
+    parser.add_argument("--episodes", type=int, default=100, help="number of episodes, env seeds SEED..SEED+N-1")
+    parser.add_argument("--num-envs", type=int, default=100, help="envs stepped in lockstep, one request per decision for all; scores do not depend on it")
+    parser.add_argument("--seed", type=int, default=200000, help="first episode seed (200000..200099 are the held-out seeds)")
+    parser.add_argument("--max-steps", type=int, default=300, help="episode step limit")
+    parser.add_argument("--action-horizon", type=int, default=12, help="actions of each chunk executed open loop")
+    parser.add_argument("--out", default=None, metavar="FILE", help="write one JSON line per episode (seed, max_reward, success, length, policy, card) to FILE")
+    parser.add_argument("--gif", default=None, metavar="FILE", help="write the first episode as an animated GIF (real speed, step/coverage/success caption) to FILE")
     parser.add_argument("--api-key", default=None, help="sent as the X-API-Key header when the service requires a key")
-    parser.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="per-request timeout in seconds (default: 30)")
+    parser.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="per-request timeout in seconds")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     return parser
 
@@ -285,11 +309,6 @@ class _ProgressBar:
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
-
-
-def _shrink_frame(frame: np.ndarray) -> np.ndarray:
-    # Every frame of the first episode is kept in memory until the end; a GIF needs far less than full size.
-    return np.ascontiguousarray(np.asarray(frame, dtype=np.uint8)[::GIF_PIXEL_STRIDE, ::GIF_PIXEL_STRIDE])
 
 
 def _error_detail(response: httpx.Response) -> str:

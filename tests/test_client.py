@@ -21,6 +21,11 @@ SEED = 100000
 # Short e2e runs: 4 episodes over 2 envs, 60 steps each.
 SHORT = ["--episodes", "4", "--num-envs", "2", "--max-steps", "60", "--seed", str(SEED)]
 FORBIDDEN_IMPORTS = ("torch", "training", "service", "onnxruntime", "fastapi")
+# Until service/batching.py pads each model call to pusht.rollout.BATCH_MULTIPLE rows (pad_rows), a
+# served batch of 3 rounds its rows differently from the in-process padded one; strict, so the fix shows.
+SERVER_PADS_NOT_YET = pytest.mark.xfail(
+    strict=True, reason="service/batching.py does not pad model calls to a multiple of 4 rows (pusht.rollout.pad_rows) yet",
+)
 
 
 def run_client(*args: str, importtime: bool = False, timeout: float = 180) -> subprocess.CompletedProcess:
@@ -70,8 +75,11 @@ def free_port() -> int:
 def test_help_documents_flags_and_imports_no_torch():
     proc = run_client("--help", importtime=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
-    for flag in ("--url", "--policy", "--episodes", "--num-envs", "--seed", "--max-steps", "--action-horizon", "--gif", "--api-key", "--timeout"):
+    for flag in ("--url", "--policy", "--episodes", "--num-envs", "--seed", "--max-steps", "--action-horizon", "--gif", "--out", "--api-key", "--timeout"):
         assert flag in proc.stdout
+    text = " ".join(proc.stdout.split())
+    assert "(default: None)" not in text and "(default: flow)" in text and "(default: 200000)" in text
+    assert all(option.count("(default") <= 1 for option in text.split(" --")[1:])
     modules = imported_modules(proc.stderr)
     assert "pusht.rollout" in modules and "httpx" in modules  # the parse works: it sees what is imported
     bad = sorted(m for m in modules if m.split(".")[0] in FORBIDDEN_IMPORTS + ("imageio",))
@@ -178,8 +186,10 @@ def server(models_dir) -> str:
 
 @pytest.mark.slow
 def test_e2e_report_gif_and_determinism(server, tmp_path):
-    gif = tmp_path / "first.gif"
-    first = report_of(run_client("--url", server, "--api-key", API_KEY, *SHORT, "--gif", str(gif)))
+    gif, out = tmp_path / "first.gif", tmp_path / "episodes.jsonl"
+    first_proc = run_client("--url", server, "--api-key", API_KEY, *SHORT, "--gif", str(gif), "--out", str(out))
+    first = report_of(first_proc)
+    assert f"gif: wrote {gif}" in first_proc.stderr and f"to {out}" in first_proc.stderr
     # The second run also proves that a full real rollout loads neither torch nor the service.
     second_proc = run_client("--url", server, "--api-key", API_KEY, *SHORT, importtime=True)
     second = report_of(second_proc)
@@ -202,9 +212,13 @@ def test_e2e_report_gif_and_determinism(server, tmp_path):
 
     from PIL import Image
 
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [r["seed"] for r in records] == list(range(SEED, SEED + 4))
+    assert {r["policy"] for r in records} == {"flow"} and len({r["card"] for r in records}) == 1
+    assert records[0]["card"].startswith("flow@")
     with Image.open(gif) as image:
         assert image.format == "GIF"
-        assert image.n_frames >= 10
+        assert image.n_frames == records[0]["length"] + 1  # every step, at the control rate: real speed
         assert image.info.get("duration") == 100  # 10 fps
         assert min(image.size) >= 64
 
@@ -219,47 +233,48 @@ def test_e2e_server_errors_are_one_line(server):
 
 
 @pytest.mark.slow
-def test_http_equals_in_process_evaluation(server, models_dir):
-    """Same model, seeds and noise rule: HTTP and in-process rollouts see identical states and actions."""
+@SERVER_PADS_NOT_YET
+@pytest.mark.parametrize("policy", ["flow", "mse"])
+def test_http_equals_in_process_evaluation_for_any_num_envs(server, models_dir, policy):
+    """Same model and seeds: HTTP with 3 envs in lockstep plays exactly the episodes of in-process runs with 1 or 4."""
     from clients.rollout import HttpPolicy
-    from pusht.rollout import episode_seeds, run_episodes
+    from pusht.rollout import decision_seed, episode_seeds, run_episodes
     from training.evaluate import make_act_fn, onnx_actor
 
-    actor, kind = onnx_actor(models_dir / "flow.onnx")
-    calls: dict[str, list] = {"http": [], "local": []}
+    if not (models_dir / f"{policy}.onnx").exists():
+        pytest.skip(f"no {policy} model served")
+    actor, kind = onnx_actor(models_dir / f"{policy}.onnx")
+    seeds = episode_seeds(SEED, 4)
+    sent: list[list[int]] = []
 
-    def recording(act, log):
-        def recorded(states, request_seed):
-            actions = act(states, request_seed)
-            log.append((states.copy(), request_seed, np.asarray(actions, dtype=np.float32)))
-            return actions
-
-        return recorded
-
-    http = HttpPolicy(server, "flow", api_key=API_KEY)
+    http = HttpPolicy(server, policy, api_key=API_KEY)
     try:
-        seeds = episode_seeds(SEED, 4)
-        over_http = run_episodes(recording(http, calls["http"]), seeds, num_envs=2, max_steps=60, seed=SEED)
+        def recorded(states, row_seeds):
+            sent.append(list(row_seeds))
+            return http(states, row_seeds)
+
+        over_http = run_episodes(recorded, seeds, num_envs=3, max_steps=60)
     finally:
         http.close()
-    local = run_episodes(recording(make_act_fn(actor, kind), calls["local"]), seeds, num_envs=2, max_steps=60, seed=SEED)
+    assert sent[0] == [decision_seed(s, 0) for s in seeds[:3]]  # the request names each row's seed
+    for num_envs in (1, 4):
+        local = run_episodes(make_act_fn(actor, kind), seeds, num_envs=num_envs, max_steps=60)
+        assert over_http.episodes == local.episodes, num_envs
 
-    assert len(calls["http"]) == len(calls["local"]) == over_http.decisions
-    for (s_http, seed_http, a_http), (s_local, seed_local, a_local) in zip(calls["http"], calls["local"]):
-        assert seed_http == seed_local
-        np.testing.assert_array_equal(s_http, s_local)
-        np.testing.assert_array_equal(a_http, a_local)
-    assert over_http.episodes == local.episodes
 
-    # The two command lines report the same scores on the same seeds.
-    flags = ["--episodes", "4", "--num-envs", "2", "--max-steps", "60", "--seed", str(SEED)]
-    cli = report_of(run_client("--url", server, "--api-key", API_KEY, "--no-progress", *flags))
+@pytest.mark.slow
+@SERVER_PADS_NOT_YET
+def test_client_and_evaluate_write_the_same_episode_records(server, models_dir, tmp_path):
+    """The two command lines, with different --num-envs, write identical per-episode files and scores."""
+    flags = ["--episodes", "4", "--max-steps", "60", "--seed", str(SEED), "--no-progress"]
+    cli = report_of(run_client("--url", server, "--api-key", API_KEY, "--num-envs", "3", "--out", str(tmp_path / "http.jsonl"), *flags))
     evaluated = subprocess.run(
-        [sys.executable, "-m", "training.evaluate", "--model", str(models_dir / "flow.onnx"), "--no-progress", *flags],
+        [sys.executable, "-m", "training.evaluate", "--model", str(models_dir / "flow.onnx"), "--num-envs", "2",
+         "--out", str(tmp_path / "local.jsonl"), *flags],
         cwd=REPO, capture_output=True, text=True, timeout=180,
     )
     assert evaluated.returncode == 0, evaluated.stderr
     reference = json.loads(evaluated.stdout.splitlines()[-1])
-    for key in ("seeds", "mean_max_reward", "mean_max_reward_ci95", "success_rate", "success_rate_ci95", "mean_length", "decisions"):
+    for key in ("seeds", "mean_max_reward", "mean_max_reward_ci95", "success_rate", "success_rate_ci95", "mean_length"):
         assert cli[key] == reference[key], key
-    assert cli["mean_max_reward"] == round(local.mean_max_reward, 4)
+    assert (tmp_path / "http.jsonl").read_text() == (tmp_path / "local.jsonl").read_text()

@@ -1,4 +1,4 @@
-"""Evaluation: the act-function rule (flow noise from the request seed), checkpoints and ONNX files, the CLI."""
+"""Evaluation: the act-function rule (flow noise from each row's seed), checkpoints and ONNX files, the CLI."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from pusht.rollout import chunk_noise, decision_seed
+from pusht.rollout import decision_seed, row_noise
 from training.checkpoint import save_checkpoint
 from training.data import Normalizer, load_replay
 from training.evaluate import evaluate_policy, load_actor, main
@@ -19,6 +19,7 @@ from training.policies import build_policy
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED_DATA = REPO.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr"
+SHIPPED = REPO / "models"
 REPORT_FIELDS = {"model", "kind", "env", "episodes", "seeds", "mean_max_reward", "mean_max_reward_ci95",
                  "success_rate", "success_rate_ci95", "mean_length", "wall_time_s"}
 
@@ -53,18 +54,21 @@ class RecordingActor:
         return np.repeat(states[:, None, 2:4], 12, axis=1)
 
 
-def test_flow_noise_comes_from_the_request_seed():
+def test_flow_noise_comes_from_each_rows_own_seed():
     actor = RecordingActor()
     summary = evaluate_policy(actor, "flow", episodes=3, seed=42, num_envs=3, max_steps=24)
     assert summary.decisions == 2 and summary.seeds == [42, 43, 44]
     for d, noise in enumerate(actor.noises):
-        np.testing.assert_array_equal(noise, chunk_noise(decision_seed(42, d), 3))
+        assert noise.shape == (4, 12, 2)  # padded to a multiple of four rows with the last row
+        np.testing.assert_array_equal(noise[:3], row_noise([decision_seed(e, d) for e in (42, 43, 44)]))
+        np.testing.assert_array_equal(noise[3], noise[2])
 
 
 def test_noise_scale_multiplies_the_request_noise():
     actor = RecordingActor()
     evaluate_policy(actor, "flow", episodes=2, seed=42, num_envs=2, max_steps=12, noise_scale=0.6)
-    np.testing.assert_allclose(actor.noises[0], 0.6 * chunk_noise(decision_seed(42, 0), 2), rtol=1e-6)
+    expected = 0.6 * row_noise([decision_seed(42, 0), decision_seed(43, 0)])
+    np.testing.assert_allclose(actor.noises[0][:2], expected, rtol=1e-6)
     with pytest.raises(ValueError, match="noise_scale"):
         evaluate_policy(actor, "flow", episodes=1, seed=0, max_steps=12, noise_scale=-1.0)
 
@@ -154,10 +158,15 @@ def test_cli_errors_name_the_problem(checkpoint, tmp_path, capsys):
     assert "missing.onnx" in capsys.readouterr().err
     (tmp_path / "bad.json").write_text('{"kind": "gan"}')
     assert main(["--model", str(tmp_path / "bad"), "--no-progress"]) == 2
-    assert "bad.json: card is missing fields" in capsys.readouterr().err
+    assert "bad.json: card kind must be one of ('mse', 'flow'), got 'gan'" in capsys.readouterr().err
     (tmp_path / "bad.onnx").write_bytes(b"not onnx")
     assert main(["--model", str(tmp_path / "bad.onnx"), "--no-progress"]) == 2
-    assert "bad.json: card is missing fields" in capsys.readouterr().err
+    assert "bad.json: card kind must be one of" in capsys.readouterr().err
+    (tmp_path / "fields.json").write_text('{"kind": "mse"}')
+    assert main(["--model", str(tmp_path / "fields"), "--no-progress"]) == 2
+    assert "fields.json: card is missing fields" in capsys.readouterr().err
+    assert main(["--model", str(SHIPPED / "mse.onnx"), "--out", str(tmp_path), "--no-progress"]) == 2
+    assert "--out" in capsys.readouterr().err
 
 
 def test_evaluate_policy_rejects_bad_arguments():
@@ -168,3 +177,14 @@ def test_evaluate_policy_rejects_bad_arguments():
         evaluate_policy(actor, "mse", episodes=1, env="mujoco")
     with pytest.raises(ValueError, match="positive"):
         evaluate_policy(actor, "mse", episodes=0)
+
+
+@pytest.mark.parametrize("name", ["mse", "flow"])
+def test_shipped_policy_episodes_do_not_depend_on_num_envs(name):
+    """Each episode depends on its own seed only: the same results alone, in batches of 3 or all 8 at once."""
+    actor, kind = load_actor(SHIPPED / f"{name}.onnx")
+    runs = {n: evaluate_policy(actor, kind, episodes=8, seed=300000, num_envs=n).episodes for n in (1, 3, 8)}
+    assert runs[1] == runs[3] == runs[8]
+    torch_actor, _ = load_actor(SHIPPED / name)  # the torch backend too, on fewer steps
+    short = {n: evaluate_policy(torch_actor, kind, episodes=5, seed=300000, num_envs=n, max_steps=96).episodes for n in (1, 5)}
+    assert short[1] == short[5]

@@ -28,15 +28,18 @@ import numpy as np
 from pusht.geometry import coverage
 from pusht.rollout import SUCCESS_COVERAGE, Trajectory, default_env_factory, run_episodes
 from training.data import Replay, save_replay
+from training.config import HelpFormatter
 from training.evaluate import evaluate_policy, load_actor, make_act_fn, report
 
 HELDOUT_SEEDS = range(200000, 200100)
 """Seeds of the shipped models' held-out evaluation (training.ship): never collected from."""
+RETRY_SEED_STRIDE = 10**9
+"""Retries of a collection from --seed S play episode seeds from (S + 1) * 10**9 on (their noise only)."""
 
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: collect, filter, write, print one JSON line."""
-    parser = argparse.ArgumentParser(prog="python -m training.collect", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m training.collect", description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
     parser.add_argument("--model", required=True, help="an ONNX file or a checkpoint stem (models/flow)")
     parser.add_argument("--episodes", type=int, default=1000, help="episodes to play (seeds seed..seed+episodes-1)")
     parser.add_argument("--seed", type=int, default=300000, help="first episode seed; must keep the range clear of the held-out seeds 200000..200099")
@@ -139,19 +142,20 @@ def _retry_near_misses(
         return []
     restore = [trajectory.states[t] for trajectory, t in starts]
     budgets = [max_steps - t for _, t in starts]
-    # retry r of start i plays "seed" i * retries + r: the env restores start i and the noise rows differ
+    # Retry r of start i plays episode seed base + i * retries + r: the env restores start i, and the
+    # seed, far above any evaluation's, gives each retry of each collection its own noise.
+    base = (seed + 1) * RETRY_SEED_STRIDE
     summary = run_episodes(
         make_act_fn(actor, kind, noise_scale),
-        list(range(len(starts) * retries)),
+        [base + k for k in range(len(starts) * retries)],
         num_envs=min(1000, len(starts) * retries),
         max_steps=max_steps,
-        seed=seed,
-        env_factory=lambda: _RestoringEnv(restore, budgets, retries),
+        env_factory=lambda: _RestoringEnv(restore, budgets, retries, base),
         record_trajectories=True,
     )
     chosen: dict[int, Trajectory] = {}
     for trajectory, episode in zip(summary.trajectories, summary.episodes):
-        start = episode.seed // retries
+        start = (episode.seed - base) // retries
         if episode.success and start not in chosen:
             chosen[start] = trajectory
     out = []
@@ -167,16 +171,16 @@ def _retry_near_misses(
 
 
 class _RestoringEnv:
-    """The Push-T env whose reset(seed=i * retries + r) restores start i, truncating after that start's step budget."""
+    """The Push-T env whose reset(seed=base + i * retries + r) restores start i, truncating after that start's step budget."""
 
-    def __init__(self, starts: list[np.ndarray], budgets: list[int], retries: int) -> None:
+    def __init__(self, starts: list[np.ndarray], budgets: list[int], retries: int, base: int) -> None:
         self.env = default_env_factory()
-        self.starts, self.budgets, self.retries = starts, budgets, retries
+        self.starts, self.budgets, self.retries, self.base = starts, budgets, retries, base
         self._budget = 0
         self._steps = 0
 
     def reset(self, seed: int):
-        start = seed // self.retries
+        start = (seed - self.base) // self.retries
         self._budget, self._steps = self.budgets[start], 0
         return self.env.reset(options={"restore_state": self.starts[start]})
 
