@@ -26,4 +26,5 @@ USER app
 EXPOSE 8000
 HEALTHCHECK --interval=15s --timeout=3s --start-period=30s --retries=3 \
     CMD ["python", "-c", "import sys, urllib.request; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8000/readyz', timeout=2).status == 200 else 1)"]
-CMD ["uvicorn", "service.app:app", "--host", "0.0.0.0", "--port", "8000"]
+# python -m service: uvicorn with a header deadline, connection caps and a bounded shutdown (README: security model).
+CMD ["python", "-m", "service", "--host", "0.0.0.0", "--port", "8000"]

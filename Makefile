@@ -22,7 +22,7 @@ $(VENV)/.test-installed: pyproject.toml | $(VENV)/bin/python
 	touch $@ $(VENV)/.serve-installed
 
 serve: $(VENV)/.serve-installed
-	$(VENV)/bin/uvicorn service.app:app --host $(HOST) --port $(PORT)
+	$(PY) -m service --host $(HOST) --port $(PORT)
 
 test: $(VENV)/.test-installed
 	$(PY) -m pytest -q

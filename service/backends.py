@@ -84,7 +84,8 @@ def read_card(path: Path) -> dict[str, Any]:
         reason = "JSON nested too deeply" if isinstance(exc, RecursionError) else str(exc)
         raise ModelLoadError(f"cannot read policy card {path}: {reason}") from None
     if not isinstance(card, dict):
-        raise ModelLoadError(f"policy card {path} must be a JSON object, got {type(card).__name__}")
+        kind = {list: "an array", str: "a string", bool: "a boolean", type(None): "null"}.get(type(card), "a number")
+        raise ModelLoadError(f"policy card {path} must be a JSON object, got {kind}")
     missing = [key for key in ("name", "kind") if key not in card]
     if missing:
         raise ModelLoadError(

@@ -65,22 +65,35 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-class UvicornProcess:
-    """`uvicorn service.app:app` in a subprocess on 127.0.0.1, stopped on exit of the `with` block."""
+def server_command(entry: str, port: int | str, python: str = sys.executable, app: str = "service.app:app") -> list[str]:
+    """How users start the service: `entry` "uvicorn" (plain `uvicorn APP`) or "service" (`python -m service`, Makefile, Docker)."""
+    if entry == "service":
+        return [python, "-m", "service", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"]
+    return [python, "-m", "uvicorn", app, "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"]
 
-    def __init__(self, env: dict[str, str], python: str = sys.executable, app: str = "service.app:app", cwd: Path = REPO) -> None:
+
+class UvicornProcess:
+    """The service (plain uvicorn, or `python -m service`) in a subprocess on 127.0.0.1, stopped on exit of the `with` block."""
+
+    def __init__(
+        self, env: dict[str, str], python: str = sys.executable, app: str = "service.app:app", cwd: Path = REPO,
+        entry: str = "uvicorn", preexec_fn=None,
+    ) -> None:
         self.models_dir = Path(env.get("PUSHT_MODELS_DIR", "models"))
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.env = {**os.environ, **env}
-        self.cmd = [python, "-m", "uvicorn", app, "--host", "127.0.0.1", "--port", str(self.port), "--log-level", "warning"]
+        self.cmd = server_command(entry, self.port, python, app)
         self.cwd = cwd
+        self.preexec_fn = preexec_fn
         self.proc: subprocess.Popen | None = None
 
     def __enter__(self) -> "UvicornProcess":
         # A file, not a pipe: nobody drains a pipe while the tests run, and a full one blocks the server.
         self.log = tempfile.TemporaryFile(mode="w+")
-        self.proc = subprocess.Popen(self.cmd, cwd=self.cwd, env=self.env, stdout=self.log, stderr=subprocess.STDOUT, text=True)
+        self.proc = subprocess.Popen(
+            self.cmd, cwd=self.cwd, env=self.env, stdout=self.log, stderr=subprocess.STDOUT, text=True, preexec_fn=self.preexec_fn
+        )
         try:
             wait_ready(self.url, self.proc, log=self.log)
         except BaseException:
@@ -96,6 +109,13 @@ class UvicornProcess:
         """What the server printed so far."""
         self.log.seek(0)
         return self.log.read()
+
+    def rss_bytes(self) -> int:
+        """The server process's resident memory (Linux /proc)."""
+        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+        raise RuntimeError("no VmRSS")
 
 
 def wait_ready(url: str, proc: subprocess.Popen | None = None, timeout: float = 60.0, log: IO[str] | None = None) -> None:

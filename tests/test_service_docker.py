@@ -84,7 +84,7 @@ def test_dockerignore_keeps_checkpoints_and_caches_out() -> None:
 
 
 def test_dockerfile_has_what_the_image_needs() -> None:
-    """python:3.11-slim, the serve extra only, a non-root user, port 8000, a /readyz health check, uvicorn CMD."""
+    """python:3.11-slim, the serve extra only, a non-root user, port 8000, a /readyz health check, `python -m service` CMD."""
     steps = dockerfile_instructions()
     by_kind: dict[str, list[str]] = {}
     for kind, args in steps:
@@ -95,7 +95,8 @@ def test_dockerfile_has_what_the_image_needs() -> None:
     assert by_kind["USER"] and by_kind["USER"][-1] not in ("root", "0")
     assert by_kind["EXPOSE"] == ["8000"]
     assert "/readyz" in by_kind["HEALTHCHECK"][0] and "curl" not in by_kind["HEALTHCHECK"][0]
-    assert "service.app:app" in by_kind["CMD"][0] and "0.0.0.0" in by_kind["CMD"][0]
+    # python -m service: uvicorn with the connection limits (header deadline, caps, bounded shutdown)
+    assert json.loads(by_kind["CMD"][0]) == ["python", "-m", "service", "--host", "0.0.0.0", "--port", "8000"]
     assert any(a.startswith("models") for a in by_kind["COPY"])
 
 
@@ -127,10 +128,11 @@ def test_image_install_serves_without_torch(tmp_path: Path, tmp_path_factory: py
     no_torch = subprocess.run([str(venv / "bin" / "python"), "-c", "import torch"], capture_output=True, text=True, cwd=tmp_path)
     assert no_torch.returncode != 0 and "No module named 'torch'" in no_torch.stderr
 
-    cmd_line = next(args for kind, args in steps if kind == "CMD")
-    assert cmd_line.startswith("[")
+    cmd_line = json.loads(next(args for kind, args in steps if kind == "CMD"))
+    assert cmd_line[:3] == ["python", "-m", "service"]
     env = {"PUSHT_MODELS_DIR": str(context / "models"), "PUSHT_BACKEND": "onnx", "PYTHONPATH": ""}
-    with UvicornProcess(env, python=str(venv / "bin" / "python"), cwd=context) as srv:
+    with UvicornProcess(env, python=str(venv / "bin" / "python"), cwd=context, entry="service") as srv:
+        assert httpx.get(f"{srv.url}/docs-assets/swagger-ui-bundle.js").status_code == 200  # /docs works offline
         answer = httpx.post(f"{srv.url}/act", json={"policy": "flow", "state": [222.0, 97.0, 222.0, 222.0, 0.8], "seed": 0})
         assert answer.status_code == 200, answer.text
         assert answer.json()["backend"] == "onnx"

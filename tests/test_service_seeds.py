@@ -1,0 +1,143 @@
+"""Per-row seeds in `POST /act`: row i answers as a single request with seeds[i], whatever its batch mates.
+
+Against a real uvicorn on loopback (random test models, then the shipped models/), plus the batcher
+in process for requests split over several model calls.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from pusht.rollout import chunk_noise, row_noise
+from tests.service_fixtures import SHIPPED_MODELS, UvicornProcess, cached_test_models, iter_lines, raw_burst, shipped_models_available
+
+rng = np.random.default_rng(3)
+STATES = np.column_stack([rng.uniform(20, 490, (6, 4)), rng.uniform(0, 6.28, 6)]).round(3).tolist()
+SEEDS = [10**18 + 7, 0, 2**63 - 1, 5, 5, 123]
+
+
+@pytest.fixture(scope="session")
+def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Random-weight mse and flow policies (cards, safetensors, ONNX)."""
+    return cached_test_models(tmp_path_factory.getbasetemp())
+
+
+@pytest.fixture(scope="module", params=["test", "shipped"], ids=["test-models", "shipped-models"])
+def server(request: pytest.FixtureRequest):
+    if request.param == "shipped":
+        if not shipped_models_available():
+            pytest.skip("models/ has no shipped mse and flow")
+        models = SHIPPED_MODELS
+    else:
+        models = request.getfixturevalue("test_models")
+    with UvicornProcess({"PUSHT_MODELS_DIR": str(models), "PUSHT_MAX_STATES": "64"}) as srv:
+        yield srv
+
+
+def act(url: str, **body) -> httpx.Response:
+    return httpx.post(f"{url}/act", json=body, timeout=30)
+
+
+@pytest.mark.slow
+def test_row_i_equals_a_single_request_with_seeds_i(server: UvicornProcess) -> None:
+    from service.backends import OnnxPolicy, read_card
+
+    batch = act(server.url, policy="flow", states=STATES, seeds=SEEDS)
+    assert batch.status_code == 200, batch.text
+    actions = np.asarray(batch.json()["actions"], dtype=np.float32)
+    assert actions.shape == (6, 12, 2)
+    for i, (state, seed) in enumerate(zip(STATES, SEEDS, strict=True)):
+        alone = act(server.url, policy="flow", state=state, seed=seed).json()["actions"]
+        np.testing.assert_allclose(actions[i], alone, atol=1e-4, rtol=0)
+    # other batch mates, other order: the same rows
+    order = [5, 3, 0, 4, 1, 2]
+    shuffled = act(server.url, policy="flow", states=[STATES[i] for i in order], seeds=[SEEDS[i] for i in order]).json()
+    np.testing.assert_allclose(np.asarray(shuffled["actions"]), actions[order], atol=1e-4, rtol=0)
+    # equal seeds on equal states give equal rows; the noise is row_noise(seeds), as in process
+    twice = np.asarray(act(server.url, policy="flow", states=[STATES[0]] * 2, seeds=[9, 9]).json()["actions"])
+    np.testing.assert_array_equal(twice[0], twice[1])
+    policy = OnnxPolicy(server.models_dir / "flow.json", read_card(server.models_dir / "flow.json"))
+    expected = policy.act(np.asarray(STATES, np.float32), row_noise(SEEDS, 12, 2), None)
+    np.testing.assert_allclose(actions, expected, atol=1e-4, rtol=0)
+    # a whole-batch seed keeps its meaning: chunk_noise(seed, B), not per-row noise
+    whole = np.asarray(act(server.url, policy="flow", states=STATES, seed=5).json()["actions"])
+    np.testing.assert_allclose(whole, policy.act(np.asarray(STATES, np.float32), chunk_noise(5, 6), None), atol=1e-4, rtol=0)
+    # mse ignores seeds, as it ignores seed
+    mse = [act(server.url, policy="mse", states=STATES, **extra).json()["actions"] for extra in ({"seeds": SEEDS}, {})]
+    assert mse[0] == mse[1]
+
+
+@pytest.mark.slow
+def test_requests_with_seeds_still_merge_into_shared_model_calls(server: UvicornProcess) -> None:
+    def calls_and_requests() -> tuple[float, float]:
+        values = {}
+        for line in iter_lines(httpx.get(f"{server.url}/metrics").text):
+            for key in ("pusht_batch_requests_count", "pusht_batch_requests_sum"):
+                if line.startswith(key + '{policy="flow"}'):
+                    values[key] = float(line.split()[-1])
+        return values.get("pusht_batch_requests_count", 0.0), values.get("pusht_batch_requests_sum", 0.0)
+
+    n = 64
+    bodies = [{"policy": "flow", "states": [STATES[i % 6], STATES[(i + 1) % 6]], "seeds": [1000 + i, 2000 + i]} for i in range(n)]
+    alone = [act(server.url, **body).json()["actions"] for body in bodies]
+    calls0, reqs0 = calls_and_requests()
+    together = asyncio.run(raw_burst(server.port, [json.dumps(b).encode() for b in bodies], connections=32))
+    calls1, reqs1 = calls_and_requests()
+    assert [status for status, _ in together] == [200] * n
+    np.testing.assert_allclose([json.loads(body)["actions"] for _, body in together], alone, atol=1e-4, rtol=0)
+    assert reqs1 - reqs0 == n and calls1 - calls0 < n, f"{n} requests took {calls1 - calls0} model calls: no merging"
+
+
+BAD_SEEDS = [
+    ("lengths differ", {"states": STATES[:3], "seeds": [1, 2]}, "'seeds' has 2 entries but 'states' has 3"),
+    ("more seeds than states", {"states": STATES[:1], "seeds": [1, 2]}, "'seeds' has 2 entries but 'states' has 1"),
+    ("seeds with state", {"state": STATES[0], "seeds": [1]}, "'seeds' goes with 'states'"),
+    ("seeds with seed", {"states": STATES[:2], "seeds": [1, 2], "seed": 3}, "at most one of 'seed'"),
+    ("negative", {"states": STATES[:2], "seeds": [1, -1]}, "greater than or equal to 0"),
+    ("2**63", {"states": STATES[:2], "seeds": [1, 2**63]}, "less than or equal to"),
+    ("float", {"states": STATES[:2], "seeds": [1, 2.0]}, "valid integer"),
+    ("string", {"states": STATES[:2], "seeds": [1, "2"]}, "valid integer"),
+    ("bool", {"states": STATES[:2], "seeds": [1, True]}, "valid integer"),
+    ("null entry", {"states": STATES[:2], "seeds": [1, None]}, "valid integer"),
+    ("empty", {"states": STATES[:2], "seeds": []}, "at least 1"),
+    ("not a list", {"states": STATES[:2], "seeds": 7}, "valid array"),
+    ("too many", {"states": [STATES[0]] * 65, "seeds": list(range(65))}, "at most 64"),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case, body, message", BAD_SEEDS, ids=[c[0] for c in BAD_SEEDS])
+def test_bad_seeds_get_a_422_that_says_why(case: str, body: dict, message: str, server: UvicornProcess) -> None:
+    response = act(server.url, policy="flow", **body)
+    assert response.status_code == 422, response.text
+    assert message in json.dumps(response.json()["detail"]), response.text
+
+
+def test_a_request_split_over_model_calls_keeps_its_noise(test_models: Path) -> None:
+    """Rows of one request spread over several calls (small cost budget) get the noise of one unsplit call."""
+    from service.backends import OnnxPolicy, read_card
+    from service.batching import Batcher
+
+    policy = OnnxPolicy(test_models / "flow.json", read_card(test_models / "flow.json"))
+    states = np.asarray([STATES[i % 6] for i in range(10)], dtype=np.float32)
+    seeds = list(range(50, 60))
+    calls: list[int] = []
+
+    async def run() -> list[np.ndarray]:
+        batcher = Batcher(policy, max_cost=30, observe=lambda name, rows, reqs: calls.append(rows))  # 3 flow rows a call
+        try:
+            return await asyncio.gather(batcher.submit(states, seed=5), batcher.submit(states, seeds=seeds), batcher.submit(states))
+        finally:
+            batcher.close()
+
+    whole, per_row, fresh = asyncio.run(run())
+    assert max(calls) <= 3 and sum(calls) == 30
+    np.testing.assert_allclose(whole, policy.act(states, chunk_noise(5, 10), None), atol=1e-4, rtol=0)
+    np.testing.assert_allclose(per_row, policy.act(states, row_noise(seeds), None), atol=1e-4, rtol=0)
+    assert fresh.shape == (10, 12, 2) and np.isfinite(fresh).all()
