@@ -44,29 +44,15 @@ def finetune(cfg: FinetuneConfig) -> Path:
     """Run one fine-tuning as configured; returns the run folder."""
     from training.checkpoint import git_commit, load_checkpoint, save_checkpoint
     from training.evaluate import evaluate_policy
-    from training.policies import ActingPolicy, build_policy
 
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     base, base_card = load_checkpoint(cfg.init)
     if base_card["kind"] != "flow":
         raise ValueError(f"{cfg.init} is a {base_card['kind']} checkpoint; noise-space fine-tuning needs a flow")
-    architecture = {**base_card["architecture"], "steering_dims": cfg.steering_dims_list()}
-    policy = build_policy("flow", **architecture)
-    missing, unexpected = policy.load_state_dict(base.state_dict(), strict=False)
-    if unexpected or any(not k.startswith("steering.") for k in missing):
-        raise ValueError(f"{cfg.init}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
-    # The flow stays frozen because only the steering is optimized: PPO's loss never reaches the flow
-    # (rollouts run without grad), and leaving requires_grad alone keeps the card's parameter count whole.
-    policy.eval()  # the frozen flow has no dropout at acting time; steering has none
-    normalization = base_card["normalization"]
-    acting = ActingPolicy(policy, num_steps=cfg.flow_num_steps, **normalization)
-    steering = policy.steering
-    noise_scale = policy.noise_scale
-    encoded_dim = policy.encode_state(torch.zeros(1, policy.state_dim)).shape[1]
-    critic = Critic(encoded_dim, cfg.critic_dims_list())
-    actor_opt = torch.optim.Adam(steering.parameters(), lr=cfg.lr)
-    critic_opt = torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr)
+    agent = _Steered(base, base_card, cfg)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    algorithm = {"ppo": _PPO, "sac": _SAC, "qselect": _QSelect}[cfg.algo](agent, cfg, generator)
 
     run_dir = Path(cfg.out_dir) / cfg.name
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -74,17 +60,12 @@ def finetune(cfg: FinetuneConfig) -> Path:
     print(f"config: {json.dumps(cfg.to_dict())}", file=sys.stderr)
     log = _Log(run_dir)
     card = {"name": "flow", "config": cfg.to_dict(), "git_commit": git_commit(), "init": str(cfg.init)}
-
     envs = ChunkVectorEnv(cfg.num_envs, cfg.train_seed_start)
-    state_mean = torch.tensor(normalization["state_mean"], dtype=torch.float32)
-    state_std = acting.state_std
-    generator = torch.Generator().manual_seed(cfg.seed)
-    recent_max, recent_success = [], []
     start = time.perf_counter()
     bar = _progress_bar(cfg.iterations, cfg.progress)
 
     def evaluate(iteration: int) -> dict:
-        summary = evaluate_policy(acting, "flow", episodes=cfg.eval_episodes, seed=cfg.eval_seed, num_steps=cfg.flow_num_steps)
+        summary = evaluate_policy(agent.acting, "flow", episodes=cfg.eval_episodes, seed=cfg.eval_seed, num_steps=cfg.flow_num_steps)
         record = {"type": "eval", "step": iteration, "mean_max_reward": summary.mean_max_reward,
                   "mean_max_reward_ci95": list(summary.mean_max_reward_ci95), "success_rate": summary.success_rate,
                   "success_rate_ci95": list(summary.success_rate_ci95), "seeds": [summary.seeds[0], summary.seeds[-1]],
@@ -92,60 +73,211 @@ def finetune(cfg: FinetuneConfig) -> Path:
         log.write(record)
         return record
 
+    def checkpoint(iteration: int, evaluation: dict | None) -> None:
+        save_checkpoint(str(run_dir / "last"), agent.policy, agent.normalization, **card, steps=iteration,
+                        wall_time_s=time.perf_counter() - start, evaluation=evaluation, finished=iteration == cfg.iterations)
+
     last_eval = evaluate(0) if cfg.eval_every > 0 else None
+    finished_max: list[float] = []
+    finished_success: list[bool] = []
     for iteration in range(1, cfg.iterations + 1):
-        rollout = _collect(envs, policy, acting, critic, state_mean, state_std, noise_scale, cfg, generator, recent_max, recent_success)
-        stats = ppo_update(steering, critic, actor_opt, critic_opt, rollout, noise_scale, cfg.ppo_settings(), generator)
+        stats = algorithm.iterate(envs, finished_max, finished_success)
         if iteration % cfg.log_every == 0 or iteration == cfg.iterations:
             record = {"type": "train", "step": iteration, "decisions": iteration * cfg.num_envs * cfg.rollout_decisions,
-                      "episodes": envs.episodes_started, "return": float(rollout.reward.sum() / max(1.0, float(rollout.done.sum()))),
-                      "episode_max_reward": float(np.mean(recent_max)) if recent_max else None,
-                      "episode_success": float(np.mean(recent_success)) if recent_success else None,
-                      "std": float(steering.std().mean().detach()), "wall_time_s": time.perf_counter() - start, **stats}
+                      "episodes": envs.episodes_started,
+                      "episode_max_reward": float(np.mean(finished_max)) if finished_max else None,
+                      "episode_success": float(np.mean(finished_success)) if finished_success else None,
+                      "wall_time_s": time.perf_counter() - start, **stats}
+            if agent.steering is not None:
+                record["std"] = float(agent.steering.std().mean().detach())
             log.write(record)
-            recent_max.clear()
-            recent_success.clear()
-            bar.set_postfix(success=record["episode_success"], std=round(record["std"], 3))
+            finished_max.clear()
+            finished_success.clear()
+            bar.set_postfix(success=record["episode_success"])
         if cfg.eval_every > 0 and (iteration % cfg.eval_every == 0 or iteration == cfg.iterations):
             last_eval = evaluate(iteration)
-            save_checkpoint(str(run_dir / "last"), policy, normalization, **card, steps=iteration,
-                            wall_time_s=time.perf_counter() - start, evaluation=last_eval, finished=iteration == cfg.iterations)
+            checkpoint(iteration, last_eval)
             log.plot()
         bar.update(1)
     bar.close()
-    save_checkpoint(str(run_dir / "last"), policy, normalization, **card, steps=cfg.iterations,
-                    wall_time_s=time.perf_counter() - start, evaluation=last_eval, finished=True)
+    checkpoint(cfg.iterations, last_eval)
     log.plot()
     print(f"run dir: {run_dir}", file=sys.stderr)
     return run_dir
 
 
-@torch.no_grad()
-def _collect(envs, policy, acting, critic, state_mean, state_std, noise_scale, cfg, generator, recent_max, recent_success) -> Rollout:
-    """`rollout_decisions` chunks in every env with the current steering; returns the time-major rollout."""
-    steps, n = cfg.rollout_decisions, envs.num_envs
-    horizon, action_dim = policy.horizon, policy.action_dim
-    out = {k: [] for k in ("encoded", "time_fraction", "x0", "log_prob", "value", "reward", "done")}
-    for _ in range(steps):
+class _Steered:
+    """The flow with fresh steering, as both algorithms see it: observations in, start noises and actions out."""
+
+    def __init__(self, base: torch.nn.Module, base_card: dict, cfg: FinetuneConfig) -> None:
+        from training.policies import ActingPolicy, build_policy
+
+        if cfg.algo == "qselect":
+            added = {"selector_dims": cfg.critic_dims_list(), "selector_candidates": cfg.candidates}
+        else:
+            added = {"steering_dims": cfg.steering_dims_list()}
+        self.policy = build_policy("flow", **{**base_card["architecture"], **added})
+        missing, unexpected = self.policy.load_state_dict(base.state_dict(), strict=False)
+        if unexpected or any(not k.startswith(("steering.", "selector.")) for k in missing):
+            raise ValueError(f"{cfg.init}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
+        # The flow stays frozen because only the steering is optimized: no loss reaches the flow (rollouts
+        # run without grad), and leaving requires_grad alone keeps the card's parameter count whole.
+        self.policy.eval()
+        self.normalization = base_card["normalization"]
+        self.acting = ActingPolicy(self.policy, num_steps=cfg.flow_num_steps, **self.normalization)
+        self.steering = self.policy.steering
+        self.noise_scale = self.policy.noise_scale
+        self.chunk_shape = (self.policy.horizon, self.policy.action_dim)
+        self.encoded_dim = self.policy.encode_state(torch.zeros(1, self.policy.state_dim)).shape[1]
+
+    @torch.no_grad()
+    def observe(self, envs: ChunkVectorEnv) -> tuple[torch.Tensor, torch.Tensor]:
+        """The encoded states [N, S'] and clocks [N] of the envs."""
         state = torch.as_tensor(envs.obs, dtype=torch.float32)
-        encoded = policy.encode_state((state - state_mean) / state_std)
-        clock = torch.as_tensor(envs.time_fraction(), dtype=torch.float32)
-        noise = torch.randn((n, horizon, action_dim), generator=generator)
-        x0 = policy.steering(encoded, noise, noise_scale)
-        log_prob, _ = policy.steering.log_prob(encoded, x0, noise_scale)
-        actions = acting(state, noise).numpy()  # the same x0: acting steers the same noise the same way
-        result = envs.step(actions)
-        reward = result.reward_end - result.reward_start + cfg.success_bonus * result.success
-        recent_max.extend(result.finished_max_reward)
-        recent_success.extend(result.finished_success)
-        for key, value in (("encoded", encoded), ("time_fraction", clock), ("x0", x0), ("log_prob", log_prob),
-                           ("value", critic(encoded, clock)), ("reward", torch.as_tensor(reward, dtype=torch.float32)),
-                           ("done", torch.as_tensor(result.done, dtype=torch.float32))):
-            out[key].append(value)
-    state = torch.as_tensor(envs.obs, dtype=torch.float32)
-    encoded = policy.encode_state((state - state_mean) / state_std)
-    last_value = critic(encoded, torch.as_tensor(envs.time_fraction(), dtype=torch.float32))
-    return Rollout(**{k: torch.stack(v) for k, v in out.items()}, last_value=last_value)
+        encoded = self.policy.encode_state((state - self.acting.state_mean) / self.acting.state_std)
+        return encoded, torch.as_tensor(envs.time_fraction(), dtype=torch.float32)
+
+    @torch.no_grad()
+    def act(self, envs: ChunkVectorEnv, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, np.ndarray]:
+        """Encoded states, clocks, sampled starts x0 [N, H, A] and their env-unit chunks [N, H, A]."""
+        encoded, clock = self.observe(envs)
+        noise = torch.randn((envs.num_envs, *self.chunk_shape), generator=generator)
+        x0 = self.steering(encoded, noise, self.noise_scale)
+        return encoded, clock, x0, self.chunks(envs, x0)
+
+    @torch.no_grad()
+    def chunks(self, envs: ChunkVectorEnv, x0: torch.Tensor) -> np.ndarray:
+        """The env-unit chunks [N, H, A] the flow integrates from starts x0 in the envs' states."""
+        return self.acting.from_start(torch.as_tensor(envs.obs, dtype=torch.float32), x0).numpy()
+
+
+def _chunk_reward(result, cfg: FinetuneConfig) -> torch.Tensor:
+    """The change of the env's reward (a potential) plus the success bonus, per env."""
+    return torch.as_tensor(result.reward_end - result.reward_start + cfg.success_bonus * result.success, dtype=torch.float32)
+
+
+class _PPO:
+    """On-policy: `rollout_decisions` chunks in every env, then clipped-surrogate epochs."""
+
+    def __init__(self, agent: _Steered, cfg: FinetuneConfig, generator: torch.Generator) -> None:
+        self.agent, self.cfg, self.generator = agent, cfg, generator
+        self.critic = Critic(agent.encoded_dim, cfg.critic_dims_list())
+        self.actor_opt = torch.optim.Adam(agent.steering.parameters(), lr=cfg.lr)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+
+    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
+        """One rollout and update; returns figures for the log."""
+        agent = self.agent
+        out = {k: [] for k in ("encoded", "time_fraction", "x0", "log_prob", "value", "reward", "done")}
+        with torch.no_grad():
+            for _ in range(self.cfg.rollout_decisions):
+                encoded, clock, x0, actions = agent.act(envs, self.generator)
+                log_prob, _ = agent.steering.log_prob(encoded, x0, agent.noise_scale)
+                result = envs.step(actions)
+                finished_max.extend(result.finished_max_reward)
+                finished_success.extend(result.finished_success)
+                for key, value in (("encoded", encoded), ("time_fraction", clock), ("x0", x0), ("log_prob", log_prob),
+                                   ("value", self.critic(encoded, clock)), ("reward", _chunk_reward(result, self.cfg)),
+                                   ("done", torch.as_tensor(result.done, dtype=torch.float32))):
+                    out[key].append(value)
+            last_value = self.critic(*agent.observe(envs))
+        rollout = Rollout(**{k: torch.stack(v) for k, v in out.items()}, last_value=last_value)
+        return ppo_update(agent.steering, self.critic, self.actor_opt, self.critic_opt, rollout, agent.noise_scale,
+                          self.cfg.ppo_settings(), self.generator)
+
+
+class _SAC:
+    """Off-policy: each decision of every env goes to a replay; `updates_per_decision` updates follow each one."""
+
+    def __init__(self, agent: _Steered, cfg: FinetuneConfig, generator: torch.Generator) -> None:
+        from training.sac import ReplayBuffer, SACLearner
+
+        self.agent, self.cfg, self.generator = agent, cfg, generator
+        self.learner = SACLearner(agent.steering, agent.encoded_dim, agent.noise_scale, cfg.sac_settings(agent.chunk_shape),
+                                  cfg.critic_dims_list())
+        self.replay = ReplayBuffer(cfg.buffer_size, agent.encoded_dim, agent.chunk_shape[0] * agent.chunk_shape[1])
+
+    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
+        """`rollout_decisions` decisions, each followed by its updates; returns the last update's figures."""
+        stats: dict = {}
+        for _ in range(self.cfg.rollout_decisions):
+            encoded, clock, x0, actions = self.agent.act(envs, self.generator)
+            result = envs.step(actions)
+            finished_max.extend(result.finished_max_reward)
+            finished_success.extend(result.finished_success)
+            # an env that ended restarted at once: its next state is a fresh episode's, but done cuts the bootstrap
+            next_encoded, next_clock = self.agent.observe(envs)
+            self.replay.add(enc=encoded, clock=clock, x0=x0, reward=_chunk_reward(result, self.cfg),
+                            done=torch.as_tensor(result.done, dtype=torch.float32), next_enc=next_encoded, next_clock=next_clock)
+            if self.replay.size < self.cfg.batch_size:
+                continue
+            for _ in range(self.cfg.updates_per_decision):
+                batch = self.replay.sample(self.cfg.batch_size, self.generator)
+                stats = self.learner.update(batch, update_actor=self.replay.size >= self.cfg.learning_starts, generator=self.generator)
+        return stats
+
+
+class _QSelect:
+    """Policy iteration in the noise space: Q(state, x0) regressed on discounted returns, acting by the best of K candidates.
+
+    Episodes are played with the current selection (plain flow sampling until `learning_starts`
+    transitions are in); each finished episode's decisions go to a replay of recent ones with their
+    Monte Carlo returns, on which Q takes `updates_per_decision` steps per decision step.
+    """
+
+    def __init__(self, agent: _Steered, cfg: FinetuneConfig, generator: torch.Generator) -> None:
+        from training.sac import ReplayBuffer
+
+        self.agent, self.cfg, self.generator = agent, cfg, generator
+        self.selector = agent.policy.selector
+        self.opt = torch.optim.Adam(self.selector.q.parameters(), lr=cfg.critic_lr)
+        self.replay = ReplayBuffer(cfg.buffer_size, agent.encoded_dim, agent.chunk_shape[0] * agent.chunk_shape[1])
+        self.pending: list[list[tuple[torch.Tensor, torch.Tensor, float]]] = [[] for _ in range(cfg.num_envs)]
+
+    @property
+    def selecting(self) -> bool:
+        """Whether Q has seen enough returns to choose."""
+        return self.replay.size >= self.cfg.learning_starts
+
+    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
+        """`rollout_decisions` decisions in every env, each followed by Q's updates; returns figures for the log."""
+        agent, losses = self.agent, []
+        for _ in range(self.cfg.rollout_decisions):
+            encoded, _ = agent.observe(envs)
+            noise = torch.randn((envs.num_envs, *agent.chunk_shape), generator=self.generator)
+            with torch.no_grad():
+                x0 = self.selector(encoded, noise, agent.noise_scale) if self.selecting else agent.noise_scale * noise
+            result = envs.step(agent.chunks(envs, x0))
+            finished_max.extend(result.finished_max_reward)
+            finished_success.extend(result.finished_success)
+            reward = _chunk_reward(result, self.cfg)
+            for i in range(envs.num_envs):
+                self.pending[i].append((encoded[i], x0[i], float(reward[i])))
+                if result.done[i]:
+                    self._store(self.pending[i])
+                    self.pending[i] = []
+            if self.replay.size >= self.cfg.batch_size:
+                for _ in range(self.cfg.updates_per_decision):
+                    losses.append(self._update())
+        return {"q_loss": float(np.mean(losses)) if losses else None, "selecting": self.selecting, "replay": self.replay.size}
+
+    def _store(self, episode: list) -> None:
+        returns, running = [], 0.0
+        for _, _, reward in reversed(episode):
+            running = reward + self.cfg.gamma * running
+            returns.append(running)
+        returns.reverse()
+        self.replay.add(enc=torch.stack([e for e, _, _ in episode]), x0=torch.stack([x for _, x, _ in episode]),
+                        reward=torch.tensor(returns))
+
+    def _update(self) -> float:
+        batch = self.replay.sample(self.cfg.batch_size, self.generator)
+        q = self.selector.value(batch["enc"], batch["x0"].reshape(-1, *self.agent.chunk_shape))
+        loss = 0.5 * (q - batch["reward"][:, 0]).pow(2).mean()
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return float(loss.detach())
 
 
 class _Log:

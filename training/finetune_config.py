@@ -7,6 +7,7 @@ the tuning range 300000..).
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -14,12 +15,14 @@ from training.cli import build_parser, command_line, option
 from training.ppo import PPOSettings
 
 PROG = "python -m training.finetune"
+ALGOS = ("ppo", "sac", "qselect")
 
 
 @dataclass
 class FinetuneConfig:
     """Everything that defines a fine-tuning run."""
 
+    algo: str = option("ppo", "ppo (on-policy, clipped surrogate), sac (off-policy, replay, twin critics) or qselect (a critic picks the best of --candidates starts)", choices=ALGOS)
     init: str = option("models/flow", "flow checkpoint stem whose start noise is steered (its weights stay frozen)")
     name: str = option("flow-dsrl", "run name; outputs go to OUT_DIR/NAME")
     out_dir: str = option("runs", "parent folder of run folders")
@@ -37,6 +40,13 @@ class FinetuneConfig:
     minibatch: int = option(256, "PPO minibatch size")
     entropy_coef: float = option(0.0, "entropy bonus of the steering's Gaussian")
     success_bonus: float = option(1.0, "reward added when a chunk lands the block (coverage > 0.95)")
+    batch_size: int = option(256, "sac: minibatch size")
+    buffer_size: int = option(1_000_000, "sac: replay capacity (transitions)")
+    learning_starts: int = option(20_000, "sac: transitions in the replay before the actor moves (the critics learn first)")
+    updates_per_decision: int = option(16, "sac: gradient updates after each decision step of all envs")
+    candidates: int = option(16, "qselect: candidate starts the critic chooses from at each decision")
+    tau: float = option(0.005, "sac: Polyak rate of the target critics")
+    target_std: float = option(0.3, "sac: the temperature aims at the entropy of a Gaussian start with this std per dimension")
     flow_num_steps: int = option(10, "Euler steps of the frozen flow")
     train_seed_start: int = option(10_000_000, "first training episode seed (episodes use consecutive seeds)")
     eval_every: int = option(50, "evaluate (and checkpoint) every N iterations (0: only at the end)")
@@ -48,11 +58,14 @@ class FinetuneConfig:
     progress: bool = option(True, "show a tqdm progress bar on stderr")
 
     def __post_init__(self) -> None:
-        positive = ("iterations", "num_envs", "rollout_decisions", "epochs", "minibatch", "flow_num_steps", "eval_episodes", "log_every", "threads")
+        if self.algo not in ALGOS:
+            raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
+        positive = ("iterations", "num_envs", "rollout_decisions", "epochs", "minibatch", "flow_num_steps", "eval_episodes", "log_every",
+                    "threads", "batch_size", "buffer_size", "updates_per_decision")
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("lr", "critic_lr", "clip"):
+        for name in ("lr", "critic_lr", "clip", "tau", "target_std"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("gamma", "gae_lambda"):
@@ -74,6 +87,14 @@ class FinetuneConfig:
     def ppo_settings(self) -> PPOSettings:
         """The PPO update's hyperparameters."""
         return PPOSettings(self.gamma, self.gae_lambda, self.clip, self.epochs, self.minibatch, self.entropy_coef)
+
+    def sac_settings(self, chunk_shape: tuple[int, int]) -> "SACSettings":
+        """The SAC update's hyperparameters; the target entropy is that of N(0, target_std^2) per start-noise dimension."""
+        from training.sac import SACSettings
+
+        dims = chunk_shape[0] * chunk_shape[1]
+        target_entropy = dims * (0.5 * math.log(2 * math.pi * math.e) + math.log(self.target_std))
+        return SACSettings(self.gamma, self.tau, self.batch_size, self.lr, self.critic_lr, target_entropy)
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of every field."""

@@ -39,11 +39,11 @@ DEFAULT_TIME_EMBEDDING_DIM = 32
 TIME_FREQ_MIN, TIME_FREQ_MAX = 1.0, 1000.0
 _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
 MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame")
-FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale", "steering_dims")
+FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale", "steering_dims", "selector_dims", "selector_candidates")
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 # Variant keys and their defaults; the `architecture` dict lists a variant key only when it differs,
 # so cards of the default architectures stay exactly as they were.
-_VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar", "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0, "steering_dims": None}
+_VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar", "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0, "steering_dims": None, "selector_dims": None, "selector_candidates": 16}
 
 
 @runtime_checkable
@@ -213,6 +213,8 @@ class FlowPolicy(_StateEncoding):
         action_frame: str = "absolute",
         noise_scale: float = 1.0,
         steering_dims: Sequence[int] | None = None,
+        selector_dims: Sequence[int] | None = None,
+        selector_candidates: int = 16,
     ) -> None:
         super().__init__()
         self._arch = _check_architecture(hidden_dims, dropout, horizon, action_dim, state_dim)
@@ -225,6 +227,8 @@ class FlowPolicy(_StateEncoding):
                 action_frame=action_frame,
                 noise_scale=noise_scale,
                 steering_dims=steering_dims,
+                selector_dims=selector_dims,
+                selector_candidates=selector_candidates,
             )
         )
         self.horizon, self.action_dim, self.state_dim = horizon, action_dim, state_dim
@@ -249,6 +253,12 @@ class FlowPolicy(_StateEncoding):
             from training.steering import NoiseSteering
 
             self.steering = NoiseSteering(encoded_dim, (horizon, action_dim), self._arch["steering_dims"])
+        # A learned critic choosing the best of K candidate starts (training.finetune --algo qselect).
+        self.selector = None
+        if self._arch["selector_dims"] is not None:
+            from training.selection import NoiseSelector
+
+            self.selector = NoiseSelector(encoded_dim, (horizon, action_dim), self._arch["selector_dims"], self._arch["selector_candidates"])
 
     @property
     def architecture(self) -> dict[str, Any]:
@@ -298,6 +308,8 @@ class FlowPolicy(_StateEncoding):
         """The Euler start x0 [B, H, A] of standard-normal `noise`: scaled, and steered when the policy has steering."""
         if self.steering is not None:
             return self.steering(self.encode_state(state), noise, self.noise_scale)
+        if self.selector is not None:
+            return self.selector(self.encode_state(state), noise, self.noise_scale)
         return noise if self.noise_scale == 1.0 else noise * self.noise_scale
 
     def integrate(self, state: torch.Tensor, x0: torch.Tensor, num_steps: int = DEFAULT_NUM_STEPS) -> torch.Tensor:
@@ -352,6 +364,14 @@ class ActingPolicy(nn.Module):
             chunk_n = self.policy.sample_actions(state_n, noise=noise, num_steps=steps)
         else:
             chunk_n = self.policy.sample_actions(state_n)
+        return self._to_env_units(state, chunk_n)
+
+    def from_start(self, state: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
+        """Flow only: env-unit actions [B, H, A] integrated from a given Euler start x0 (fine-tuning acts this way)."""
+        state_n = (state - self.state_mean) / self.state_std
+        return self._to_env_units(state, self.policy.integrate(state_n, x0, self.num_steps))
+
+    def _to_env_units(self, state: torch.Tensor, chunk_n: torch.Tensor) -> torch.Tensor:
         actions = chunk_n * self.action_std + self.action_mean
         if self.policy.action_frame == "agent":
             actions = actions + state[:, None, :ACTION_DIM]
@@ -415,13 +435,21 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale <= 10:
             raise ValueError(f"noise_scale must be a number in [0, 10], got {scale!r}")
         variants["noise_scale"] = float(scale)
-    if variants.get("steering_dims") is not None:
-        dims = variants["steering_dims"]
+    for key in ("steering_dims", "selector_dims"):
+        dims = variants.get(key)
+        if dims is None:
+            continue
         if isinstance(dims, (str, bytes)) or not isinstance(dims, Sequence) or not dims or any(
             isinstance(w, bool) or not isinstance(w, int) or w < 1 for w in dims
         ):
-            raise ValueError(f"steering_dims must be null or a non-empty list of positive ints, got {dims!r}")
-        variants["steering_dims"] = [int(w) for w in dims]
+            raise ValueError(f"{key} must be null or a non-empty list of positive ints, got {dims!r}")
+        variants[key] = [int(w) for w in dims]
+    if "selector_candidates" in variants:
+        k = variants["selector_candidates"]
+        if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 256:
+            raise ValueError(f"selector_candidates must be an int in [1, 256], got {k!r}")
+    if variants.get("steering_dims") is not None and variants.get("selector_dims") is not None:
+        raise ValueError("a flow takes steering_dims or selector_dims, not both")
     if "action_frame" in variants and variants["action_frame"] not in ACTION_FRAMES:
         raise ValueError(f"action_frame must be one of {ACTION_FRAMES}, got {variants['action_frame']!r}")
     if "angle_encoding" in variants and variants["angle_encoding"] not in ANGLE_ENCODINGS:
