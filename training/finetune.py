@@ -218,32 +218,36 @@ class _SAC:
 
 
 class _QSelect:
-    """Policy iteration in the noise space: Q(state, x0) regressed on discounted returns, acting by the best of K candidates.
+    """Approximate policy iteration in the noise space; acting picks the best of K candidate starts by Q.
 
-    Episodes are played with the current selection (plain flow sampling until `learning_starts`
-    transitions are in); each finished episode's decisions go to a replay of recent ones with their
-    Monte Carlo returns, on which Q takes `updates_per_decision` steps per decision step.
+    V(state, clock) regresses the Monte Carlo returns of recent episodes; Q(state, x0) regresses
+    r + gamma V(next state), a target that, the env being deterministic, hardly varies for a given
+    state and start, unlike the return itself. Episodes are played with the current selection (plain
+    flow sampling until `learning_starts` transitions are in).
     """
+
+    FIELDS = {"enc": 0, "clock": 1, "x0": 0, "reward": 1, "done": 1, "next_enc": 0, "next_clock": 1, "ret": 1}
 
     def __init__(self, agent: _Steered, cfg: FinetuneConfig, generator: torch.Generator) -> None:
         from training.sac import ReplayBuffer
 
         self.agent, self.cfg, self.generator = agent, cfg, generator
         self.selector = agent.policy.selector
-        self.opt = torch.optim.Adam(self.selector.q.parameters(), lr=cfg.critic_lr)
-        self.replay = ReplayBuffer(cfg.buffer_size, agent.encoded_dim, agent.chunk_shape[0] * agent.chunk_shape[1])
-        self.pending: list[list[tuple[torch.Tensor, torch.Tensor, float]]] = [[] for _ in range(cfg.num_envs)]
+        self.value = Critic(agent.encoded_dim, cfg.critic_dims_list())
+        self.opt = torch.optim.Adam([*self.selector.q.parameters(), *self.value.parameters()], lr=cfg.critic_lr)
+        self.replay = ReplayBuffer(cfg.buffer_size, agent.encoded_dim, agent.chunk_shape[0] * agent.chunk_shape[1], self.FIELDS)
+        self.pending: list[list[dict[str, torch.Tensor]]] = [[] for _ in range(cfg.num_envs)]
 
     @property
     def selecting(self) -> bool:
-        """Whether Q has seen enough returns to choose."""
+        """Whether Q has seen enough transitions to choose."""
         return self.replay.size >= self.cfg.learning_starts
 
     def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
-        """`rollout_decisions` decisions in every env, each followed by Q's updates; returns figures for the log."""
+        """`rollout_decisions` decisions in every env, each followed by the updates; returns figures for the log."""
         agent, losses = self.agent, []
         for _ in range(self.cfg.rollout_decisions):
-            encoded, _ = agent.observe(envs)
+            encoded, clock = agent.observe(envs)
             noise = torch.randn((envs.num_envs, *agent.chunk_shape), generator=self.generator)
             with torch.no_grad():
                 x0 = self.selector(encoded, noise, agent.noise_scale) if self.selecting else agent.noise_scale * noise
@@ -251,33 +255,36 @@ class _QSelect:
             finished_max.extend(result.finished_max_reward)
             finished_success.extend(result.finished_success)
             reward = _chunk_reward(result, self.cfg)
+            next_encoded, next_clock = agent.observe(envs)  # an ended env restarted: done cuts its bootstrap
             for i in range(envs.num_envs):
-                self.pending[i].append((encoded[i], x0[i], float(reward[i])))
+                self.pending[i].append({"enc": encoded[i], "clock": clock[i], "x0": x0[i], "reward": reward[i],
+                                        "done": torch.tensor(float(result.done[i])), "next_enc": next_encoded[i], "next_clock": next_clock[i]})
                 if result.done[i]:
                     self._store(self.pending[i])
                     self.pending[i] = []
             if self.replay.size >= self.cfg.batch_size:
                 for _ in range(self.cfg.updates_per_decision):
                     losses.append(self._update())
-        return {"q_loss": float(np.mean(losses)) if losses else None, "selecting": self.selecting, "replay": self.replay.size}
+        q_loss, v_loss = np.mean(losses, axis=0) if losses else (None, None)
+        return {"q_loss": q_loss and float(q_loss), "v_loss": v_loss and float(v_loss), "selecting": self.selecting, "replay": self.replay.size}
 
-    def _store(self, episode: list) -> None:
-        returns, running = [], 0.0
-        for _, _, reward in reversed(episode):
-            running = reward + self.cfg.gamma * running
-            returns.append(running)
-        returns.reverse()
-        self.replay.add(enc=torch.stack([e for e, _, _ in episode]), x0=torch.stack([x for _, x, _ in episode]),
-                        reward=torch.tensor(returns))
+    def _store(self, episode: list[dict[str, torch.Tensor]]) -> None:
+        running = 0.0
+        for step in reversed(episode):
+            running = float(step["reward"]) + self.cfg.gamma * running
+            step["ret"] = torch.tensor(running)
+        self.replay.add(**{k: torch.stack([step[k] for step in episode]) for k in self.FIELDS})
 
-    def _update(self) -> float:
-        batch = self.replay.sample(self.cfg.batch_size, self.generator)
-        q = self.selector.value(batch["enc"], batch["x0"].reshape(-1, *self.agent.chunk_shape))
-        loss = 0.5 * (q - batch["reward"][:, 0]).pow(2).mean()
+    def _update(self) -> tuple[float, float]:
+        b = self.replay.sample(self.cfg.batch_size, self.generator)
+        v_loss = 0.5 * (self.value(b["enc"], b["clock"][:, 0]) - b["ret"][:, 0]).pow(2).mean()
+        with torch.no_grad():
+            target = b["reward"][:, 0] + self.cfg.gamma * (1 - b["done"][:, 0]) * self.value(b["next_enc"], b["next_clock"][:, 0])
+        q_loss = 0.5 * (self.selector.value(b["enc"], b["x0"].reshape(-1, *self.agent.chunk_shape)) - target).pow(2).mean()
         self.opt.zero_grad(set_to_none=True)
-        loss.backward()
+        (q_loss + v_loss).backward()
         self.opt.step()
-        return float(loss.detach())
+        return float(q_loss.detach()), float(v_loss.detach())
 
 
 class _Log:

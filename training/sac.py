@@ -30,13 +30,16 @@ class SACSettings:
 
 
 class ReplayBuffer:
-    """A ring buffer of transitions (encoded state, clock, x0, reward, done, next encoded state, next clock)."""
+    """A ring buffer of transitions: one [capacity, width] tensor per field (by default SAC's fields)."""
 
-    def __init__(self, capacity: int, state_dim: int, noise_dim: int) -> None:
+    SAC_FIELDS = {"enc": 0, "clock": 1, "x0": 0, "reward": 1, "done": 1, "next_enc": 0, "next_clock": 1}
+
+    def __init__(self, capacity: int, state_dim: int, noise_dim: int, fields: dict[str, int] | None = None) -> None:
         self.capacity = capacity
         self.size = 0
         self._at = 0
-        widths = {"enc": state_dim, "clock": 1, "x0": noise_dim, "reward": 1, "done": 1, "next_enc": state_dim, "next_clock": 1}
+        # width 0 stands for the state's (enc, next_enc) or the noise's (x0) width
+        widths = {k: w or (noise_dim if k == "x0" else state_dim) for k, w in (fields or self.SAC_FIELDS).items()}
         self.data = {k: torch.zeros(capacity, w) for k, w in widths.items()}
 
     def add(self, **batch: torch.Tensor) -> None:
