@@ -127,29 +127,12 @@ class HttpPolicy:
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: roll out, print one JSON line on stdout; errors as one line on stderr."""
-    args = _parser().parse_args(argv)
+    args = vars(_parser().parse_args(argv))
+    args["progress"] = not args.pop("no_progress")
     try:
-        report = rollout(
-            url=args.url,
-            policy=args.policy,
-            episodes=args.episodes,
-            num_envs=args.num_envs,
-            seed=args.seed,
-            max_steps=args.max_steps,
-            action_horizon=args.action_horizon,
-            gif=args.gif,
-            out=args.out,
-            api_key=args.api_key,
-            timeout=args.timeout,
-            progress=not args.no_progress,
-        )
-    except ClientError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_ERROR
-    except ValueError as exc:  # the runner's and path checks: bad arguments or malformed actions from the server
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
-        return EXIT_ERROR
-    except OSError as exc:  # e.g. the GIF path cannot be written
+        report = rollout(**args)
+    # ValueError: the runner's and path checks (bad arguments, malformed actions from the server); OSError: unwritable files
+    except (ClientError, ValueError, OSError) as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_ERROR
     except KeyboardInterrupt:

@@ -78,13 +78,9 @@ def run_episodes(
     record_frames: bool | FrameFn = False,
     record_trajectories: bool = False,
 ) -> RolloutSummary:
-    """Play one episode per seed with `num_envs` envs in lockstep, one `act` call per decision step.
+    """Play one episode per seed with `num_envs` envs in lockstep, one `act` call per decision, row seeds `decision_seed(e, d)`.
 
-    Row i of a call is asked with `decision_seed(e, d)`, e its episode's seed and d that episode's
-    decision index. `progress` is False, True (a line on stderr) or a callback `(done, total)`. With
-    `record_frames`, the summary holds the rendered frames (`env.render()`) of the first seed's
-    episode, each passed through `record_frames(frame, step, coverage, success)` when it is callable.
-    With `record_trajectories`, the summary holds every episode's states and executed actions.
+    `progress`: bool or `(done, total)`; `record_frames`: keep the first episode's frames (through a FrameFn if callable).
     """
     seeds = _check_seeds(seeds)
     for name, value in (("num_envs", num_envs), ("max_steps", max_steps), ("action_horizon", action_horizon)):

@@ -34,10 +34,9 @@ def episode_seeds(seed: int, n: int) -> list[int]:
 
 
 def decision_seed(seed: int, decision_index: int) -> int:
-    """The request seed of decision `decision_index` of the episode with seed `seed`, in [0, 2**63).
+    """The request seed of decision `decision_index` of episode `seed`, in [0, 2**63).
 
-    Rule: words = np.random.SeedSequence([seed, decision_index]).generate_state(2, np.uint64);
-    result = (words[0] XOR words[1]) with the top bit cleared. Both inputs must be non-negative.
+    XOR of the two words of `SeedSequence([seed, decision_index]).generate_state(2, uint64)`, top bit cleared.
     """
     check_seed_value("seed", seed)
     check_seed_value("decision_index", decision_index)
@@ -46,10 +45,7 @@ def decision_seed(seed: int, decision_index: int) -> int:
 
 
 def chunk_noise(seed: int, batch: int, horizon: int = 12, action_dim: int = 2) -> np.ndarray:
-    """The standard-normal start of flow sampling for a request seed: float32 [batch, horizon, action_dim].
-
-    Drawn as `np.random.default_rng(seed).standard_normal(shape, dtype=np.float32)`.
-    """
+    """Flow's standard-normal start for a request seed: `default_rng(seed).standard_normal(shape, float32)`, [batch, horizon, action_dim]."""
     check_seed_value("seed", seed)
     for name, value in (("batch", batch), ("horizon", horizon), ("action_dim", action_dim)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:

@@ -113,10 +113,9 @@ def evaluate_policy(
     record_frames: bool = False,
     record_trajectories: bool = False,
 ) -> RolloutSummary:
-    """Roll out `actor` on episode seeds seed..seed+episodes-1; `actor` is an Actor or a torch ActingPolicy.
+    """Roll out `actor` (an Actor or a torch ActingPolicy) on seeds seed..seed+episodes-1; `num_envs=None`: all at once.
 
-    `num_envs=None` runs all episodes at once. Each row's flow noise comes from its own request seed
-    (`row_noise`), times `noise_scale`; the first episode's frames are captioned (`annotated_frame`).
+    Each row's flow noise comes from its own seed (`row_noise`) times `noise_scale`; recorded frames are captioned.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown policy kind {kind!r}; expected one of {KINDS}")
