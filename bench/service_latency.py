@@ -2,13 +2,17 @@
 
     .venv/bin/python bench/service_latency.py                    # shipped models/flow.onnx
     .venv/bin/python bench/service_latency.py --random-models    # random-weight models (no trained ones needed)
+    .venv/bin/python bench/service_latency.py --reference-rev 2bab7f9   # also the service as of that commit
 
 Starts (a) bench/baseline_app.py (one ONNX Runtime call per request, default uvicorn settings) and
 (b) `uvicorn service.app:app`, each as a subprocess on 127.0.0.1, one at a time, and drives both
 with the same minimal keep-alive HTTP/1.1 client (asyncio + uvloop, pre-encoded requests, so the
 client costs little CPU): p50/p99 latency at 1 connection (sequential requests) and throughput
-at --connections concurrent connections, single-state flow requests with a seed. The load
-generator shares the machine's cores with the server: figures depend on what else runs.
+at --connections concurrent connections, single-state flow requests with a seed. With
+--reference-rev, the service as of that git revision (service/ and pusht/ extracted with
+`git archive`) is measured too, alternated with the others, so a change is compared with what it
+replaces in one run. The load generator shares the machine's cores with the server: figures depend
+on what else runs.
 """
 
 from __future__ import annotations
@@ -62,7 +66,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=5.0, help="seconds of the throughput run")
     parser.add_argument("--warmup", type=int, default=300, help="warm-up requests before each measurement")
     parser.add_argument("--rounds", type=int, default=1, help="alternate the two servers this many times; report each figure's median")
-    parser.add_argument("--only", choices=("baseline", "service"), default=None, help="run only one of the two servers")
+    parser.add_argument("--only", choices=("baseline", "service", "reference"), default=None, help="run only one of the servers")
+    parser.add_argument("--reference-rev", default=None, help="also bench the service as of this git revision (e.g. the last release)")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
 
@@ -76,17 +81,19 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{onnx_path} not found: train and export the policies, or pass --random-models")
         payloads = _payloads(args.policy, 4096)
         servers = {
-            "baseline": ("bench.baseline_app:app", {"BASELINE_ONNX": str(onnx_path)}),
-            "service": ("service.app:app", {"PUSHT_MODELS_DIR": str(models_dir)}),
+            "baseline": ("bench.baseline_app:app", {"BASELINE_ONNX": str(onnx_path)}, REPO),
+            "service": ("service.app:app", {"PUSHT_MODELS_DIR": str(models_dir)}, REPO),
         }
+        if args.reference_rev:
+            servers["reference"] = ("service.app:app", {"PUSHT_MODELS_DIR": str(models_dir)}, checkout_rev(args.reference_rev, Path(tmp)))
         rounds: dict[str, list[Figures]] = {}
         # Alternating rounds spread slow drifts of the background load over both servers.
         for r in range(args.rounds):
-            for name, (app, env) in servers.items():
+            for name, (app, env, cwd) in servers.items():
                 if args.only and name != args.only:
                     continue
                 print(f"[{name}, round {r + 1}/{args.rounds}] starting {app} ...", file=sys.stderr)
-                rounds.setdefault(name, []).append(_bench_server(name, app, env, payloads, args))
+                rounds.setdefault(name, []).append(_bench_server(name, app, env, payloads, args, cwd))
                 print(f"[{name}, round {r + 1}/{args.rounds}] {_line(rounds[name][-1])}", file=sys.stderr)
     results = [_median(figs) for figs in rounds.values()]
 
@@ -101,7 +108,13 @@ def main(argv: list[str] | None = None) -> int:
               f"{fig.conc_p50_ms:11.3f} {fig.conc_p99_ms:11.3f} {fig.conc_cpu_ms:15.3f} {fig.errors:7d}")
     by_name = {fig.name: fig for fig in results}
     ratios = {}
-    if len(by_name) == 2:
+    if "reference" in by_name and "service" in by_name:
+        ref, ours = by_name["reference"], by_name["service"]
+        ratios["throughput_vs_reference"] = ours.throughput_rps / ref.throughput_rps
+        ratios["p50_vs_reference"] = ours.p50_ms / ref.p50_ms
+        print(f"\nservice vs reference ({args.reference_rev}): throughput {ratios['throughput_vs_reference']:.3f}x, "
+              f"p50 {ratios['p50_vs_reference']:.3f}x, cpu per request @{c} {ours.conc_cpu_ms / ref.conc_cpu_ms:.3f}x")
+    if "baseline" in by_name and "service" in by_name:
         base, ours = by_name["baseline"], by_name["service"]
         ratios = {
             "p50_ratio": ours.p50_ms / base.p50_ms,
@@ -167,7 +180,17 @@ def _payloads(policy: str, n: int) -> list[bytes]:
     return out
 
 
-def _bench_server(name: str, app: str, env: dict[str, str], payloads: list[bytes], args: argparse.Namespace) -> Figures:
+def checkout_rev(rev: str, tmp: Path) -> Path:
+    """service/ and pusht/ as of git revision `rev`, extracted into a folder under `tmp` (returned)."""
+    dest = tmp / f"rev-{rev.replace('/', '_')}"
+    dest.mkdir()
+    archive = subprocess.run(["git", "archive", rev, "service", "pusht"], cwd=REPO, capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    return dest
+
+
+def _bench_server(name: str, app: str, env: dict[str, str], payloads: list[bytes], args: argparse.Namespace,
+                  cwd: Path = REPO) -> Figures:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
@@ -175,7 +198,8 @@ def _bench_server(name: str, app: str, env: dict[str, str], payloads: list[bytes
     # own access log off unless PUSHT_ACCESS_LOG=1; the baseline keeps uvicorn's default).
     cmd = [sys.executable, "-m", "uvicorn", app, "--host", "127.0.0.1", "--port", str(port)]
     log = tempfile.TemporaryFile(mode="w+")
-    proc = subprocess.Popen(cmd, cwd=REPO, env={**os.environ, **env}, stdout=log, stderr=subprocess.STDOUT, text=True)
+    # PYTHONPATH= so that a reference checkout imports its own service/ and pusht/, not the editable install's.
+    proc = subprocess.Popen(cmd, cwd=cwd, env={**os.environ, **env, "PYTHONPATH": str(cwd)}, stdout=log, stderr=subprocess.STDOUT, text=True)
     try:
         _wait_ready(port, proc, log)
         return asyncio.run(_measure(name, port, payloads, args, lambda: _cpu_seconds(proc.pid)))

@@ -4,9 +4,9 @@ Requests queue on the event loop. Whenever the policy's worker thread is free, o
 from the queue: at most `max_cost` cost units (rows x network evaluations: a flow row costs its
 num_steps, an mse row 1) and `max_rows` rows, only rows with the oldest request's `num_steps`. The
 call's rows are shared max-min fairly: requests with few rows left go whole, and bulk requests split
-the rest evenly, so a 1-row request waits for at most one short call however many 1,024-row batches
-are queued, while bulk rows still fill every call (a model's cost per row is flat beyond a few dozen
-rows). Noise is drawn per request (`seed`) or per row (`seeds`) and sliced, so an answer never
+the rest evenly. When small requests wait beside bulk ones, the next call is short (an eighth of the
+budget), so a 1-row request waits about one call however many 1,024-row batches are queued, while
+bulk rows still fill the calls (a model's cost per row is flat beyond a few dozen rows). Noise is drawn per request (`seed`) or per row (`seeds`) and sliced, so an answer never
 depends on what else was in the batch. Requests whose client left (their future is done) are
 dropped before their rows reach the model. Compute runs in the worker thread (ONNX Runtime and torch
 release the GIL), off the event loop.
@@ -89,6 +89,7 @@ class Batcher:
         self._scheduled = False
         self._timer: asyncio.TimerHandle | None = None
         self._last_requests = 0
+        self._last_short = False
         self._closed = False
 
     async def submit(
@@ -189,6 +190,15 @@ class Batcher:
             group = sorted((item for item in live if item.num_steps == steps), key=lambda it: len(it.states) - it.taken)
         unit = group[0].unit
         left = max(1, min(self.max_rows, self.max_cost // unit))
+        short = max(1, left // 8)
+        remaining_first, remaining_last = (len(it.states) - it.taken for it in (group[0], group[-1]))
+        if not self._last_short and remaining_first <= short < remaining_last:
+            # Small requests beside bulk ones go in a short call, so they wait only for the call already
+            # running; short calls alternate with full ones, so a stream of small requests cannot starve bulk.
+            left = short
+            self._last_short = True
+        else:
+            self._last_short = False
         batch: list[_Slice] = []
         for k, item in enumerate(group):
             if left <= 0:

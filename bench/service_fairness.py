@@ -1,0 +1,159 @@
+"""Small requests beside bulk ones: 1-row latency while clients stream 256-row batches, and after hung-up clients.
+
+    .venv/bin/python bench/service_fairness.py                            # the service, shipped models/
+    .venv/bin/python bench/service_fairness.py --reference-rev 2bab7f9    # and the service as of that commit
+
+Per server (`uvicorn service.app:app` on 127.0.0.1, one at a time, alternated over --rounds):
+(1) --bulk-clients keep-alive connections stream --bulk-rows-row flow requests for --duration s:
+bulk rows/s; (2) the same plus one connection sending 1-row requests back to back: their p50/p99
+and the bulk rows/s beside them; (3) --abandoned requests of 1,024 rows whose clients close right
+after sending, then a 1-row probe: its latency. The reference revision (service/ and pusht/ from
+`git archive`) is the baseline measured in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench.service_latency import _connection, _payloads, _wait_ready, checkout_rev  # noqa: E402
+
+
+def _request(body: dict) -> bytes:
+    data = json.dumps(body).encode()
+    return b"POST /act HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\nContent-Length: %d\r\n\r\n%s" % (len(data), data)
+
+
+def _bulk_payloads(rows: int, n: int = 16) -> list[bytes]:
+    rng = np.random.default_rng(1)
+    out = []
+    for i in range(n):
+        states = np.column_stack([rng.uniform(50, 460, (rows, 4)), rng.uniform(0, 6.28, rows)]).round(3).tolist()
+        out.append(_request({"policy": "flow", "states": states, "seed": i}))
+    return out
+
+
+async def _stream(port: int, payloads: list[bytes], seconds: float, latencies: list[float], errors: list[int]) -> None:
+    await _connection(port, payloads, 0, 10**9, latencies, errors, deadline=time.perf_counter() + seconds)
+
+
+async def _bulk_and_probe(port: int, args: argparse.Namespace, probe: bool) -> dict[str, float]:
+    bulk = _bulk_payloads(args.bulk_rows)
+    small = _payloads("flow", 512)
+    bulk_lat: list[float] = []
+    probe_lat: list[float] = []
+    errors = [0]
+    start = time.perf_counter()
+    tasks = [_stream(port, bulk[i:] + bulk[:i], args.duration, bulk_lat, errors) for i in range(args.bulk_clients)]
+    if probe:
+        async def delayed_probe() -> None:
+            await asyncio.sleep(0.5)  # measure once the bulk stream is going
+            await _stream(port, small, args.duration - 0.5, probe_lat, errors)
+
+        tasks.append(delayed_probe())
+    await asyncio.gather(*tasks)
+    elapsed = time.perf_counter() - start
+    out = {"bulk_rows_per_s": len(bulk_lat) * args.bulk_rows / elapsed, "errors": errors[0]}
+    if probe:
+        ms = np.asarray(probe_lat) * 1e3
+        out.update(probe_p50_ms=float(np.percentile(ms, 50)), probe_p99_ms=float(np.percentile(ms, 99)),
+                   probe_max_ms=float(ms.max()), probes=len(ms))
+    return out
+
+
+async def _abandoned(port: int, count: int) -> float:
+    """Send `count` 1,024-row requests and hang up at once; the latency (ms) of a 1-row probe right after."""
+    payload = _bulk_payloads(1024, 1)[0]
+    for _ in range(count):
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(payload)
+        await writer.drain()
+        writer.close()
+    latencies: list[float] = []
+    await _connection(port, _payloads("flow", 1), 0, 1, latencies, [0], None)
+    return latencies[0] * 1e3
+
+
+def _bench(name: str, cwd: Path, models_dir: Path, args: argparse.Namespace) -> dict[str, float]:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    cmd = [sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1", "--port", str(port)]
+    env = {**os.environ, "PUSHT_MODELS_DIR": str(models_dir), "PYTHONPATH": str(cwd)}
+    log = tempfile.TemporaryFile(mode="w+")
+    proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=log, stderr=subprocess.STDOUT, text=True)
+    try:
+        _wait_ready(port, proc, log)
+        asyncio.run(_connection(port, _bulk_payloads(args.bulk_rows, 2), 0, 5, None, [0], None))  # warm-up
+        figures = {"name": name}
+        figures.update({f"alone_{k}": v for k, v in asyncio.run(_bulk_and_probe(port, args, probe=False)).items()})
+        figures.update(asyncio.run(_bulk_and_probe(port, args, probe=True)))
+        time.sleep(1.0)
+        figures["abandoned_probe_ms"] = asyncio.run(_abandoned(port, args.abandoned))
+        return figures
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        log.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--models-dir", default=str(REPO / "models"), help="folder with the flow policy (card + ONNX)")
+    parser.add_argument("--reference-rev", default=None, help="also bench the service as of this git revision")
+    parser.add_argument("--bulk-clients", type=int, default=8, help="connections streaming bulk requests")
+    parser.add_argument("--bulk-rows", type=int, default=256, help="states per bulk request")
+    parser.add_argument("--duration", type=float, default=8.0, help="seconds of each streaming phase")
+    parser.add_argument("--abandoned", type=int, default=40, help="1,024-row requests abandoned before the last probe")
+    parser.add_argument("--rounds", type=int, default=1, help="alternate the servers this many times (medians reported)")
+    args = parser.parse_args(argv)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        servers = {"service": REPO}
+        if args.reference_rev:
+            servers["reference"] = checkout_rev(args.reference_rev, Path(tmp))
+        runs: dict[str, list[dict]] = {}
+        for r in range(args.rounds):
+            for name, cwd in servers.items():
+                print(f"[{name}, round {r + 1}/{args.rounds}] ...", file=sys.stderr)
+                runs.setdefault(name, []).append(_bench(name, cwd, Path(args.models_dir), args))
+                print(f"[{name}, round {r + 1}/{args.rounds}] {runs[name][-1]}", file=sys.stderr)
+    print(f"\ncpu cores: {os.cpu_count()}; load generator, servers and anything else running share them")
+    print(f"{args.bulk_clients} clients streaming {args.bulk_rows}-row flow requests for {args.duration:g} s; "
+          f"medians of {args.rounds} round(s)\n")
+    keys = ["alone_bulk_rows_per_s", "bulk_rows_per_s", "probe_p50_ms", "probe_p99_ms", "probe_max_ms", "abandoned_probe_ms"]
+    print(f"{'server':<10}" + "".join(f"{k:>22}" for k in keys))
+    medians = {}
+    for name, figs in runs.items():
+        medians[name] = {k: float(np.median([f[k] for f in figs])) for k in keys}
+        print(f"{name:<10}" + "".join(f"{medians[name][k]:22.1f}" for k in keys))
+    if "reference" in medians:
+        ours, ref = medians["service"], medians["reference"]
+        print(f"\nbulk rows/s ours/reference: alone {ours['alone_bulk_rows_per_s'] / ref['alone_bulk_rows_per_s']:.3f}x, "
+              f"beside probes {ours['bulk_rows_per_s'] / ref['bulk_rows_per_s']:.3f}x (target >= 0.9); "
+              f"1-row p99 {ours['probe_p99_ms']:.1f} ms vs {ref['probe_p99_ms']:.1f} ms (target <= 30 ms)")
+    errors = sum(f["errors"] + f["alone_errors"] for figs in runs.values() for f in figs)
+    print(f"errors: {errors}")
+    return 0 if errors == 0 else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
