@@ -27,6 +27,8 @@ class ChunkStep:
     done: np.ndarray  # bool: the episode ended (success or step limit); the env restarted
     finished_max_reward: list[float]  # max reward of each episode that ended during this step
     finished_success: list[bool]
+    next_obs: np.ndarray | None = None  # lookahead only: the state after each candidate [K, 5]
+    next_time_fraction: np.ndarray | None = None  # lookahead only: its clock [K]
 
 
 class ChunkVectorEnv:
@@ -43,6 +45,7 @@ class ChunkVectorEnv:
         self.elapsed = np.zeros(num_envs, dtype=np.int64)
         self._reward = np.zeros(num_envs, dtype=np.float64)
         self._max_reward = np.zeros(num_envs, dtype=np.float64)
+        self._scratch: PushTEnv | None = None
         for i in range(num_envs):
             self._restart(i)
 
@@ -88,6 +91,35 @@ class ChunkVectorEnv:
                 self._restart(i)
         return ChunkStep(start, end, success, done, finished_max, finished_success)
 
+    def lookahead(self, i: int, chunks: np.ndarray) -> ChunkStep:
+        """What each of the chunks [K, H, 2] would do from env i's present state; env i itself does not move.
+
+        Each candidate runs in a scratch env restored from env i's bodies (positions, velocities), not
+        from the solver's contact cache, so it matches a real step closely, not bit for bit.
+        """
+        snapshot = _snapshot(self.envs[i])
+        if self._scratch is None:
+            self._scratch = PushTEnv(obs_type="state", render_mode=None)
+            self._scratch.reset(seed=0)
+        scratch = self._scratch
+        k = len(chunks)
+        start = np.full(k, self._reward[i])
+        end, success, done = np.zeros(k), np.zeros(k, dtype=bool), np.zeros(k, dtype=bool)
+        next_obs, next_elapsed = np.zeros((k, 5)), np.zeros(k, dtype=np.int64)
+        for c, chunk in enumerate(chunks):
+            _restore(scratch, snapshot)
+            elapsed, reward = int(self.elapsed[i]), self._reward[i]
+            for action in chunk:
+                obs, reward, terminated, _, info = scratch.step(action)
+                elapsed += 1
+                if info["coverage"] > SUCCESS_THRESHOLD:
+                    success[c] = True
+                if terminated or elapsed >= self.max_steps:
+                    done[c] = True
+                    break
+            end[c], next_obs[c], next_elapsed[c] = reward, obs, elapsed
+        return ChunkStep(start, end, success, done, [], [], next_obs, next_elapsed / self.max_steps)
+
     def _restart(self, i: int) -> None:
         obs, info = self.envs[i].reset(seed=self._next_seed)
         self._next_seed += 1
@@ -95,3 +127,19 @@ class ChunkVectorEnv:
         self.elapsed[i] = 0
         self._reward[i] = min(info["coverage"] / SUCCESS_THRESHOLD, 1.0)
         self._max_reward[i] = self._reward[i]
+
+
+def _snapshot(env: PushTEnv) -> tuple:
+    agent, block = env._agent, env._block
+    return (tuple(agent.position), tuple(agent.velocity), tuple(block.position), block.angle, tuple(block.velocity),
+            block.angular_velocity, env._agent_pos, env._agent_vel)
+
+
+def _restore(env: PushTEnv, snapshot: tuple) -> None:
+    agent_position, agent_velocity, block_position, angle, block_velocity, angular_velocity, pos, vel = snapshot
+    env._build_space()
+    env._agent.position, env._agent.velocity = agent_position, agent_velocity
+    env._block.angle, env._block.position = angle, block_position
+    env._block.velocity, env._block.angular_velocity = block_velocity, angular_velocity
+    env._agent_pos, env._agent_vel = pos, vel
+    env._elapsed_steps = 0  # the caller counts steps against the limit itself

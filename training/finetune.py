@@ -24,7 +24,7 @@ import torch
 
 from training.chunk_env import ChunkVectorEnv
 from training.finetune_config import FinetuneConfig, parse_config
-from training.ppo import Critic, Rollout, ppo_update
+from training.noise_rl import ALGORITHMS, NoiseAgent
 
 __all__ = ["finetune", "main"]
 
@@ -50,9 +50,9 @@ def finetune(cfg: FinetuneConfig) -> Path:
     base, base_card = load_checkpoint(cfg.init)
     if base_card["kind"] != "flow":
         raise ValueError(f"{cfg.init} is a {base_card['kind']} checkpoint; noise-space fine-tuning needs a flow")
-    agent = _Steered(base, base_card, cfg)
+    agent = NoiseAgent(base, base_card, cfg)
     generator = torch.Generator().manual_seed(cfg.seed)
-    algorithm = {"ppo": _PPO, "sac": _SAC, "qselect": _QSelect}[cfg.algo](agent, cfg, generator)
+    algorithm = ALGORITHMS[cfg.algo](agent, cfg, generator)
 
     run_dir = Path(cfg.out_dir) / cfg.name
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -104,187 +104,6 @@ def finetune(cfg: FinetuneConfig) -> Path:
     log.plot()
     print(f"run dir: {run_dir}", file=sys.stderr)
     return run_dir
-
-
-class _Steered:
-    """The flow with fresh steering, as both algorithms see it: observations in, start noises and actions out."""
-
-    def __init__(self, base: torch.nn.Module, base_card: dict, cfg: FinetuneConfig) -> None:
-        from training.policies import ActingPolicy, build_policy
-
-        if cfg.algo == "qselect":
-            added = {"selector_dims": cfg.critic_dims_list(), "selector_candidates": cfg.candidates}
-        else:
-            added = {"steering_dims": cfg.steering_dims_list()}
-        self.policy = build_policy("flow", **{**base_card["architecture"], **added})
-        missing, unexpected = self.policy.load_state_dict(base.state_dict(), strict=False)
-        if unexpected or any(not k.startswith(("steering.", "selector.")) for k in missing):
-            raise ValueError(f"{cfg.init}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
-        # The flow stays frozen because only the steering is optimized: no loss reaches the flow (rollouts
-        # run without grad), and leaving requires_grad alone keeps the card's parameter count whole.
-        self.policy.eval()
-        self.normalization = base_card["normalization"]
-        self.acting = ActingPolicy(self.policy, num_steps=cfg.flow_num_steps, **self.normalization)
-        self.steering = self.policy.steering
-        self.noise_scale = self.policy.noise_scale
-        self.chunk_shape = (self.policy.horizon, self.policy.action_dim)
-        self.encoded_dim = self.policy.encode_state(torch.zeros(1, self.policy.state_dim)).shape[1]
-
-    @torch.no_grad()
-    def observe(self, envs: ChunkVectorEnv) -> tuple[torch.Tensor, torch.Tensor]:
-        """The encoded states [N, S'] and clocks [N] of the envs."""
-        state = torch.as_tensor(envs.obs, dtype=torch.float32)
-        encoded = self.policy.encode_state((state - self.acting.state_mean) / self.acting.state_std)
-        return encoded, torch.as_tensor(envs.time_fraction(), dtype=torch.float32)
-
-    @torch.no_grad()
-    def act(self, envs: ChunkVectorEnv, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, np.ndarray]:
-        """Encoded states, clocks, sampled starts x0 [N, H, A] and their env-unit chunks [N, H, A]."""
-        encoded, clock = self.observe(envs)
-        noise = torch.randn((envs.num_envs, *self.chunk_shape), generator=generator)
-        x0 = self.steering(encoded, noise, self.noise_scale)
-        return encoded, clock, x0, self.chunks(envs, x0)
-
-    @torch.no_grad()
-    def chunks(self, envs: ChunkVectorEnv, x0: torch.Tensor) -> np.ndarray:
-        """The env-unit chunks [N, H, A] the flow integrates from starts x0 in the envs' states."""
-        return self.acting.from_start(torch.as_tensor(envs.obs, dtype=torch.float32), x0).numpy()
-
-
-def _chunk_reward(result, cfg: FinetuneConfig) -> torch.Tensor:
-    """The change of the env's reward (a potential) plus the success bonus, per env."""
-    return torch.as_tensor(result.reward_end - result.reward_start + cfg.success_bonus * result.success, dtype=torch.float32)
-
-
-class _PPO:
-    """On-policy: `rollout_decisions` chunks in every env, then clipped-surrogate epochs."""
-
-    def __init__(self, agent: _Steered, cfg: FinetuneConfig, generator: torch.Generator) -> None:
-        self.agent, self.cfg, self.generator = agent, cfg, generator
-        self.critic = Critic(agent.encoded_dim, cfg.critic_dims_list())
-        self.actor_opt = torch.optim.Adam(agent.steering.parameters(), lr=cfg.lr)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
-
-    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
-        """One rollout and update; returns figures for the log."""
-        agent = self.agent
-        out = {k: [] for k in ("encoded", "time_fraction", "x0", "log_prob", "value", "reward", "done")}
-        with torch.no_grad():
-            for _ in range(self.cfg.rollout_decisions):
-                encoded, clock, x0, actions = agent.act(envs, self.generator)
-                log_prob, _ = agent.steering.log_prob(encoded, x0, agent.noise_scale)
-                result = envs.step(actions)
-                finished_max.extend(result.finished_max_reward)
-                finished_success.extend(result.finished_success)
-                for key, value in (("encoded", encoded), ("time_fraction", clock), ("x0", x0), ("log_prob", log_prob),
-                                   ("value", self.critic(encoded, clock)), ("reward", _chunk_reward(result, self.cfg)),
-                                   ("done", torch.as_tensor(result.done, dtype=torch.float32))):
-                    out[key].append(value)
-            last_value = self.critic(*agent.observe(envs))
-        rollout = Rollout(**{k: torch.stack(v) for k, v in out.items()}, last_value=last_value)
-        return ppo_update(agent.steering, self.critic, self.actor_opt, self.critic_opt, rollout, agent.noise_scale,
-                          self.cfg.ppo_settings(), self.generator)
-
-
-class _SAC:
-    """Off-policy: each decision of every env goes to a replay; `updates_per_decision` updates follow each one."""
-
-    def __init__(self, agent: _Steered, cfg: FinetuneConfig, generator: torch.Generator) -> None:
-        from training.sac import ReplayBuffer, SACLearner
-
-        self.agent, self.cfg, self.generator = agent, cfg, generator
-        self.learner = SACLearner(agent.steering, agent.encoded_dim, agent.noise_scale, cfg.sac_settings(agent.chunk_shape),
-                                  cfg.critic_dims_list())
-        self.replay = ReplayBuffer(cfg.buffer_size, agent.encoded_dim, agent.chunk_shape[0] * agent.chunk_shape[1])
-
-    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
-        """`rollout_decisions` decisions, each followed by its updates; returns the last update's figures."""
-        stats: dict = {}
-        for _ in range(self.cfg.rollout_decisions):
-            encoded, clock, x0, actions = self.agent.act(envs, self.generator)
-            result = envs.step(actions)
-            finished_max.extend(result.finished_max_reward)
-            finished_success.extend(result.finished_success)
-            # an env that ended restarted at once: its next state is a fresh episode's, but done cuts the bootstrap
-            next_encoded, next_clock = self.agent.observe(envs)
-            self.replay.add(enc=encoded, clock=clock, x0=x0, reward=_chunk_reward(result, self.cfg),
-                            done=torch.as_tensor(result.done, dtype=torch.float32), next_enc=next_encoded, next_clock=next_clock)
-            if self.replay.size < self.cfg.batch_size:
-                continue
-            for _ in range(self.cfg.updates_per_decision):
-                batch = self.replay.sample(self.cfg.batch_size, self.generator)
-                stats = self.learner.update(batch, update_actor=self.replay.size >= self.cfg.learning_starts, generator=self.generator)
-        return stats
-
-
-class _QSelect:
-    """Approximate policy iteration in the noise space; acting picks the best of K candidate starts by Q.
-
-    V(state, clock) regresses the Monte Carlo returns of recent episodes; Q(state, x0) regresses
-    r + gamma V(next state), a target that, the env being deterministic, hardly varies for a given
-    state and start, unlike the return itself. Episodes are played with the current selection (plain
-    flow sampling until `learning_starts` transitions are in).
-    """
-
-    FIELDS = {"enc": 0, "clock": 1, "x0": 0, "reward": 1, "done": 1, "next_enc": 0, "next_clock": 1, "ret": 1}
-
-    def __init__(self, agent: _Steered, cfg: FinetuneConfig, generator: torch.Generator) -> None:
-        from training.sac import ReplayBuffer
-
-        self.agent, self.cfg, self.generator = agent, cfg, generator
-        self.selector = agent.policy.selector
-        self.value = Critic(agent.encoded_dim, cfg.critic_dims_list())
-        self.opt = torch.optim.Adam([*self.selector.q.parameters(), *self.value.parameters()], lr=cfg.critic_lr)
-        self.replay = ReplayBuffer(cfg.buffer_size, agent.encoded_dim, agent.chunk_shape[0] * agent.chunk_shape[1], self.FIELDS)
-        self.pending: list[list[dict[str, torch.Tensor]]] = [[] for _ in range(cfg.num_envs)]
-
-    @property
-    def selecting(self) -> bool:
-        """Whether Q has seen enough transitions to choose."""
-        return self.replay.size >= self.cfg.learning_starts
-
-    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
-        """`rollout_decisions` decisions in every env, each followed by the updates; returns figures for the log."""
-        agent, losses = self.agent, []
-        for _ in range(self.cfg.rollout_decisions):
-            encoded, clock = agent.observe(envs)
-            noise = torch.randn((envs.num_envs, *agent.chunk_shape), generator=self.generator)
-            with torch.no_grad():
-                x0 = self.selector(encoded, noise, agent.noise_scale) if self.selecting else agent.noise_scale * noise
-            result = envs.step(agent.chunks(envs, x0))
-            finished_max.extend(result.finished_max_reward)
-            finished_success.extend(result.finished_success)
-            reward = _chunk_reward(result, self.cfg)
-            next_encoded, next_clock = agent.observe(envs)  # an ended env restarted: done cuts its bootstrap
-            for i in range(envs.num_envs):
-                self.pending[i].append({"enc": encoded[i], "clock": clock[i], "x0": x0[i], "reward": reward[i],
-                                        "done": torch.tensor(float(result.done[i])), "next_enc": next_encoded[i], "next_clock": next_clock[i]})
-                if result.done[i]:
-                    self._store(self.pending[i])
-                    self.pending[i] = []
-            if self.replay.size >= self.cfg.batch_size:
-                for _ in range(self.cfg.updates_per_decision):
-                    losses.append(self._update())
-        q_loss, v_loss = np.mean(losses, axis=0) if losses else (None, None)
-        return {"q_loss": q_loss and float(q_loss), "v_loss": v_loss and float(v_loss), "selecting": self.selecting, "replay": self.replay.size}
-
-    def _store(self, episode: list[dict[str, torch.Tensor]]) -> None:
-        running = 0.0
-        for step in reversed(episode):
-            running = float(step["reward"]) + self.cfg.gamma * running
-            step["ret"] = torch.tensor(running)
-        self.replay.add(**{k: torch.stack([step[k] for step in episode]) for k in self.FIELDS})
-
-    def _update(self) -> tuple[float, float]:
-        b = self.replay.sample(self.cfg.batch_size, self.generator)
-        v_loss = 0.5 * (self.value(b["enc"], b["clock"][:, 0]) - b["ret"][:, 0]).pow(2).mean()
-        with torch.no_grad():
-            target = b["reward"][:, 0] + self.cfg.gamma * (1 - b["done"][:, 0]) * self.value(b["next_enc"], b["next_clock"][:, 0])
-        q_loss = 0.5 * (self.selector.value(b["enc"], b["x0"].reshape(-1, *self.agent.chunk_shape)) - target).pow(2).mean()
-        self.opt.zero_grad(set_to_none=True)
-        (q_loss + v_loss).backward()
-        self.opt.step()
-        return float(q_loss.detach()), float(v_loss.detach())
 
 
 class _Log:

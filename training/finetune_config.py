@@ -45,6 +45,8 @@ class FinetuneConfig:
     learning_starts: int = option(20_000, "sac: transitions in the replay before the actor moves (the critics learn first)")
     updates_per_decision: int = option(16, "sac: gradient updates after each decision step of all envs")
     candidates: int = option(16, "qselect: candidate starts the critic chooses from at each decision")
+    label_candidates: int = option(0, "qselect: fresh starts simulated one chunk ahead from a visited state to label Q (0: off)")
+    label_envs: int = option(32, "qselect: envs whose state is labelled at each decision step")
     tau: float = option(0.005, "sac: Polyak rate of the target critics")
     target_std: float = option(0.3, "sac: the temperature aims at the entropy of a Gaussian start with this std per dimension")
     flow_num_steps: int = option(10, "Euler steps of the frozen flow")
@@ -61,7 +63,7 @@ class FinetuneConfig:
         if self.algo not in ALGOS:
             raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
         positive = ("iterations", "num_envs", "rollout_decisions", "epochs", "minibatch", "flow_num_steps", "eval_episodes", "log_every",
-                    "threads", "batch_size", "buffer_size", "updates_per_decision")
+                    "threads", "batch_size", "buffer_size", "updates_per_decision", "label_envs")
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -71,6 +73,8 @@ class FinetuneConfig:
         for name in ("gamma", "gae_lambda"):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+        if self.label_candidates < 0:
+            raise ValueError(f"label_candidates must be >= 0, got {self.label_candidates}")
         if self.eval_every < 0 or self.train_seed_start < 0 or self.eval_seed < 0 or self.seed < 0:
             raise ValueError("eval_every, train_seed_start, eval_seed and seed must be >= 0")
         self.steering_dims_list()
