@@ -123,6 +123,9 @@ class ActHandler:
             actions = await future
         except ClientGone:
             raise ServiceError(400, "client disconnected before its actions were computed") from None
+        except asyncio.CancelledError:  # the server gave up on this request (shutdown): drop its rows too
+            future.cancel()
+            raise
         except Overloaded as exc:
             raise ServiceError(503, str(exc), {"Retry-After": "1"}) from None
         except Exception as exc:  # a backend failure is our bug, but the client still gets JSON

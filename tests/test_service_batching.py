@@ -1,0 +1,127 @@
+"""The dynamic batcher in process: merging, waiting only under load, order, errors, load shedding.
+
+Runs on the random-weight test policies; tests/test_service_fairness.py covers fairness between
+small and bulk requests, tests/test_service_seeds.py requests split over calls.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pusht.rollout import chunk_noise
+from tests.service_fixtures import cached_test_models
+
+STATES = [[120.0, 300.0, 256.0, 250.0, 1.0], [400.5, 80.25, 200.0, 310.0, 5.5], [256.0, 256.0, 256.0, 256.0, 0.0]]
+
+
+@pytest.fixture(scope="session")
+def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Random-weight mse and flow policies (cards, safetensors, ONNX)."""
+    return cached_test_models(tmp_path_factory.getbasetemp())
+
+
+def test_batcher_merges_and_keeps_each_request_seed(test_models: Path) -> None:
+    """Concurrent submits share model calls, yet each answer equals the same request run alone."""
+    from service.backends import OnnxPolicy, read_card
+    from service.batching import Batcher
+
+    policy = OnnxPolicy(test_models / "flow.json", read_card(test_models / "flow.json"))
+    calls: list[tuple[int, int]] = []
+    states = [np.asarray([STATES[i % 3]], dtype=np.float32) for i in range(40)]
+
+    async def run() -> list[np.ndarray]:
+        batcher = Batcher(policy, max_rows=16, max_wait_s=0.002, observe=lambda name, rows, reqs: calls.append((rows, reqs)))
+        try:
+            return await asyncio.gather(*(batcher.submit(s, seed=1000 + i) for i, s in enumerate(states)))
+        finally:
+            batcher.close()
+
+    merged = asyncio.run(run())
+    assert sum(reqs for _, reqs in calls) == 40
+    assert len(calls) < 40 and max(rows for rows, _ in calls) <= 16
+    for i, got in enumerate(merged):
+        alone = policy.act(states[i], chunk_noise(1000 + i, 1), None)
+        # not bitwise: GEMM kernels may sum in another order for another batch size; a wrong noise
+        # row would move actions by pixels
+        np.testing.assert_allclose(got, alone, atol=1e-4, rtol=0)
+
+
+def test_batcher_waits_only_under_load_and_never_past_a_full_batch(test_models: Path) -> None:
+    """max_wait applies once calls merge several requests; a full batch goes at once; a lone client never waits."""
+    import time
+
+    from service.backends import OnnxPolicy, read_card
+    from service.batching import Batcher
+
+    policy = OnnxPolicy(test_models / "mse.json", read_card(test_models / "mse.json"))
+    rows = np.full((8, 5), 256.0, dtype=np.float32)
+
+    async def run() -> list[float]:
+        batcher = Batcher(policy, max_rows=8, max_wait_s=1.0)
+        times = []
+        try:
+            for batches in ([rows[:1]], [rows[:4], rows[4:]], [rows[:4], rows[4:]], [rows[:1]]):
+                start = time.perf_counter()
+                await asyncio.gather(*(batcher.submit(b) for b in batches))
+                times.append(time.perf_counter() - start)
+        finally:
+            batcher.close()
+        return times
+
+    lone, first_pair, full_pair, lone_under_load = asyncio.run(run())
+    assert lone < 0.5  # the previous call had no other request: no waiting
+    assert first_pair < 0.5
+    assert full_pair < 0.5  # waiting (the last call merged 2), but the second request fills the batch
+    assert lone_under_load >= 0.9  # the last call merged 2 requests: wait for company
+
+
+def test_batcher_answers_in_order_and_passes_model_errors_on() -> None:
+    """Calls run one by one on the worker thread, also after it idled, and a failing call fails only its requests."""
+    from service.batching import Batcher
+
+    class Flaky:
+        name, kind = "flaky", "mse"
+
+        def act(self, states, noise, num_steps):
+            if states[0, 0] < 0:
+                raise RuntimeError("model call failed")
+            return np.repeat(states[:, None, :2], 12, axis=1)
+
+    async def run() -> list:
+        batcher = Batcher(Flaky())
+        try:
+            answers = []
+            for value in (1.0, -1.0, 2.0):
+                await asyncio.sleep(0.005)
+                answers += await asyncio.gather(batcher.submit(np.full((1, 5), value, np.float32)), return_exceptions=True)
+            return answers
+        finally:
+            batcher.close()
+
+    first, failed, third = asyncio.run(run())
+    assert first[0, 0, 0] == 1.0 and third[0, 0, 0] == 2.0
+    assert isinstance(failed, RuntimeError) and "model call failed" in str(failed)
+
+
+def test_batcher_sheds_load_beyond_its_queue_limit(test_models: Path) -> None:
+    """Rows beyond queue_limit waiting at once are refused with Overloaded (-> 503); the rest are answered."""
+    from service.backends import OnnxPolicy, read_card
+    from service.batching import Batcher, Overloaded
+
+    policy = OnnxPolicy(test_models / "mse.json", read_card(test_models / "mse.json"))
+    five = np.full((5, 5), 256.0, dtype=np.float32)
+
+    async def run() -> list:
+        batcher = Batcher(policy, queue_limit=10)
+        try:
+            return await asyncio.gather(*(batcher.submit(five) for _ in range(3)), return_exceptions=True)
+        finally:
+            batcher.close()
+
+    results = asyncio.run(run())
+    assert [type(r).__name__ for r in results] == ["ndarray", "ndarray", "Overloaded"]
+    assert isinstance(results[2], Overloaded) and "limit 10" in str(results[2])
