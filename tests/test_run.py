@@ -34,6 +34,9 @@ def test_an_existing_name_is_refused_and_left_untouched(tmp_path):
     before = _snapshot(tmp_path)
     with pytest.raises(RunError, match="already exists.*--resume.*--overwrite"):
         Run.start(tmp_path, "a", {**CONFIG, "steps": 99})
+    for bad in ("", "..", "a/b"):
+        with pytest.raises(RunError, match="plain folder name"):
+            Run.start(tmp_path, bad, CONFIG)
     with pytest.raises(RunError, match="exclude"):
         Run.start(tmp_path, "a", CONFIG, resume=True, overwrite=True)
     assert _snapshot(tmp_path) == before
@@ -65,7 +68,8 @@ def test_resume_returns_the_saved_state_and_cuts_the_log_back(tmp_path):
     assert step == 3 and extra == {"best": 0.5} and torch.equal(tensors["w"], torch.arange(4.0) + 1)
     assert [r["step"] for r in resumed.records] == [1, 2, 3]
     assert resumed.elapsed_s >= json.loads((tmp_path / "a" / "state.json").read_text())["elapsed_s"]
-    resumed.finish(10)
+    resumed.log({"type": "train", "step": 10})
+    resumed.finish()  # at the last logged step
     assert not list((tmp_path / "a").glob("state-*")) and json.loads((tmp_path / "a" / "state.json").read_text())["finished"]
     with pytest.raises(RunError, match="already finished at step 10"):
         Run.start(tmp_path, "a", CONFIG, resume=True)

@@ -60,7 +60,7 @@ def test_ship_records_scores_and_ships_with_a_noise_scale(run, tmp_path, capsys)
 
 @pytest.mark.slow
 def test_ship_keeps_a_better_shipped_policy_unless_forced(run, tmp_path, capsys):
-    """The real shipped flow (0.927 on seeds 200000..200099) against the 40-step run."""
+    """The real shipped flow (above 0.9 on seeds 200000..200099) against the 40-step run."""
     models, records = tmp_path / "models", tmp_path / "records"
     models.mkdir()
     for suffix in (".json", ".onnx", ".safetensors"):
@@ -69,7 +69,8 @@ def test_ship_keeps_a_better_shipped_policy_unless_forced(run, tmp_path, capsys)
     common = ["--run", str(run), "--name", "p", "--models-dir", str(models), "--records-dir", str(records), "--envs", "pusht"]
     assert ship_main(common) == 2
     err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and err.startswith(f"error: {models / 'p'} scores 0.927 mean max reward"), err
+    shipped = load_card(models / "p")["heldout_evaluation"]["pusht"]["mean_max_reward"]
+    assert len(err.strip().splitlines()) == 1 and err.startswith(f"error: {models / 'p'} scores {shipped:.3f} mean max reward"), err
     assert "this run 0." in err and "--force replaces it" in err
     assert ship_main([*common, "--episodes", "2"]) == 2  # scored on other seeds: no comparison, no replacement
     assert "cannot be compared" in capsys.readouterr().err

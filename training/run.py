@@ -9,7 +9,7 @@
             run.save_state(step, tensors, extra)                   # state.json + state-STEP.safetensors
         if run.stop_requested:
             break                        # exit with run.exit_code(): 128 + the signal number
-    run.finish(step)                     # state.json says finished; the big state file goes
+    run.finish()                         # state.json says finished (at the last logged step); the big state file goes
 
 Call `Run.start` after the loop's own setup (data, model) has succeeded, so a failed start leaves the
 disk as it was; `Run.start` checks everything before it writes. It refuses an existing folder (one line,
@@ -75,6 +75,8 @@ class Run:
     def start(cls, out_dir: str | Path, name: str, config: dict[str, Any], *, resume: bool = False, overwrite: bool = False,
               is_main: bool = True, may_change: tuple[str, ...] = ("progress", "threads")) -> Run:
         """Check, then create or reopen OUT_DIR/NAME; RunError (nothing written) if it may not be used."""
+        if not name or name in (".", "..") or "/" in name or "\\" in name:
+            raise RunError(f"run name {name!r} must be a plain folder name (no slashes)")
         run_dir = Path(out_dir) / name
         if resume and overwrite:
             raise RunError("--resume and --overwrite exclude each other")
@@ -152,8 +154,10 @@ class Run:
             raise RunError(f"{path}: cannot read the resumable state: {exc}") from None
         return self._state["step"], tensors, self._state["extra"]
 
-    def finish(self, step: int, extra: dict[str, Any] | None = None) -> None:
-        """Mark the run finished at `step` (state.json) and remove the big state file; restores signal handlers."""
+    def finish(self, step: int | None = None, extra: dict[str, Any] | None = None) -> None:
+        """Mark the run finished at `step` (default: the last logged step) and remove the big state file; restores signal handlers."""
+        if step is None:
+            step = max((r["step"] for r in self.records if isinstance(r.get("step"), int)), default=0)
         if self.is_main:
             record = {"step": step, "file": None, "elapsed_s": self.elapsed_s, "finished": True, "extra": extra or {}}
             write_text_atomic(self.dir / STATE_FILE, json.dumps(record, indent=2, allow_nan=False) + "\n")

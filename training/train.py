@@ -25,8 +25,9 @@ import torch
 from torch import nn
 
 from training.config import TrainConfig, parse_config
-from training.distributed import Distributed, progress_bar
+from training.curves import plot_learning_curve
 from training.data import training_windows  # noqa: F401  (imported from here by tests/test_collect.py)
+from training.distributed import Distributed, progress_bar
 from training.run import Run, RunStopped, pack_optimizer, pack_rng, unpack_optimizer, unpack_rng
 
 # fields that do not change what a run computes, so --resume accepts new values
@@ -45,11 +46,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def train(cfg: TrainConfig) -> Run:
     """Run (or resume) one training as configured; returns its Run (folder in `.dir`)."""
-    from training.checkpoint import load_checkpoint, save_checkpoint, update_card
-    from training.data import Normalizer, training_set
-    from training.policies import ActingPolicy, build_policy
+    from training.checkpoint import save_checkpoint, update_card
+    from training.policies import ActingPolicy
 
-    ctx = Distributed.start()
+    ctx, run = Distributed.start(), None
     try:
         if cfg.batch_size % ctx.world_size:
             raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {ctx.world_size} DDP ranks")
@@ -64,19 +64,7 @@ def train(cfg: TrainConfig) -> Run:
 
             env_factory(cfg.eval_env)()  # fail now, not after hours of training, if the env is missing
 
-        if cfg.init:
-            policy, init_card = load_checkpoint(cfg.init)
-            if init_card["kind"] != cfg.policy:
-                raise ValueError(f"{cfg.init} is a {init_card['kind']} checkpoint, not {cfg.policy}")
-            # the exported graph bakes the normalization in, so a fine-tuned policy keeps its base's
-            base_normalizer = Normalizer.from_dict(init_card["normalization"])
-        else:
-            policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, **cfg.architecture_overrides()})
-            base_normalizer = None
-        extra = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
-        data = training_set(cfg.data, cfg.horizon, policy.action_frame, cfg.pad_episode_end, extra, base_normalizer)
-        if len(data) < cfg.batch_size:
-            raise ValueError(f"{cfg.data} has {len(data)} windows, fewer than batch_size {cfg.batch_size}")
+        policy, data = _policy_and_data(cfg)
         normalization = data.normalizer.to_dict()
         # sin/cos angle encoding needs the raw angle back from the normalized state; a no-op otherwise
         policy.set_input_normalization(data.normalizer.state_mean, data.normalizer.state_std)
@@ -91,20 +79,7 @@ def train(cfg: TrainConfig) -> Run:
         # every check that can fail has passed: only now may the run folder change
         run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite,
                         is_main=ctx.is_main, may_change=RESUMABLE_CHANGES)
-        first_step, best_reward, order = 1, None, None
-        state = run.load_state()
-        if state is not None:
-            saved_step, tensors, saved = state
-            if saved["world_size"] != ctx.world_size:
-                raise ValueError(f"{run.dir} ran on {saved['world_size']} ranks; resume it on as many, not {ctx.world_size}")
-            policy.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
-            unpack_optimizer(optimizer, tensors, saved["optimizer"])
-            unpack_rng(tensors, {"permutation": permutation_rng})
-            if ctx.rank:
-                torch.set_rng_state(tensors[f"rng.rank{ctx.rank}.torch"])
-            first_step, best_reward = saved_step + 1, saved["best_reward"]
-            order, batch_in_epoch = tensors["epoch_order"], saved["batch_in_epoch"]
-            run.log({"type": "resume", "step": saved_step})
+        first_step, best_reward, order, batch_in_epoch = _restore(run, ctx, policy, optimizer, permutation_rng)
         if ctx.is_main:
             print(f"world size: {ctx.world_size}  threads: {torch.get_num_threads()}  windows: {len(data)} "
                   f"({data.demo_windows} demonstration, {len(data) - data.demo_windows} extra)", file=sys.stderr)
@@ -130,7 +105,7 @@ def train(cfg: TrainConfig) -> Run:
                        **{f"rng.rank{r}.torch": t for r, t in enumerate(rng_states) if r}}
             run.save_state(step, tensors, {"optimizer": optimizer_json, "best_reward": best_reward,
                                            "batch_in_epoch": batch_in_epoch, "world_size": ctx.world_size})
-            _plot(run.records, run.dir / "learning_curve.png")
+            plot_learning_curve(run.records, run.dir / "learning_curve.png")
 
         interval_start, interval_loss, interval_steps = time.perf_counter(), 0.0, 0
         interval_eval_s = 0.0  # evaluation time inside the interval, kept out of ms_per_step
@@ -214,17 +189,58 @@ def train(cfg: TrainConfig) -> Run:
                                 wall_time_s=run.elapsed_s, evaluation=_last_eval(run.records), finished=True)
                 if (run.dir / "best.json").is_file():
                     update_card(run.dir / "best", finished=True)
-                _plot(run.records, run.dir / "learning_curve.png")
+                plot_learning_curve(run.records, run.dir / "learning_curve.png")
                 print(f"done: {cfg.steps} steps in {run.elapsed_s:.0f} s; outputs in {run.dir}", file=sys.stderr)
             run.finish(cfg.steps)
         elif ctx.is_main:
             print(f"stopped by {run.stop_signal} at step {step} of {cfg.steps}; continue with the same command "
                   f"and --resume (state in {run.dir})", file=sys.stderr)
-        run.close()
         ctx.barrier()
         return run
     finally:
+        if run is not None:
+            run.close()  # give SIGINT back even when the run failed
         ctx.stop()
+
+
+def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
+    """The policy to train (fresh, or the --init checkpoint's) and its ready training set."""
+    from training.checkpoint import load_checkpoint
+    from training.data import Normalizer, training_set
+    from training.policies import build_policy
+
+    base_normalizer = None
+    if cfg.init:
+        policy, init_card = load_checkpoint(cfg.init)
+        if init_card["kind"] != cfg.policy:
+            raise ValueError(f"{cfg.init} is a {init_card['kind']} checkpoint, not {cfg.policy}")
+        # the exported graph bakes the normalization in, so a fine-tuned policy keeps its base's
+        base_normalizer = Normalizer.from_dict(init_card["normalization"])
+    else:
+        policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, **cfg.architecture_overrides()})
+    extra = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
+    data = training_set(cfg.data, cfg.horizon, policy.action_frame, cfg.pad_episode_end, extra, base_normalizer)
+    if len(data) < cfg.batch_size:
+        raise ValueError(f"{cfg.data} has {len(data)} windows, fewer than batch_size {cfg.batch_size}")
+    return policy, data
+
+
+def _restore(run: Run, ctx: Distributed, policy: nn.Module, optimizer: torch.optim.Optimizer,
+             permutation_rng: torch.Generator) -> tuple[int, float | None, torch.Tensor | None, int]:
+    """First step, best reward, epoch order and position from the saved state (fresh values without one)."""
+    state = run.load_state()
+    if state is None:
+        return 1, None, None, 0
+    step, tensors, saved = state
+    if saved["world_size"] != ctx.world_size:
+        raise ValueError(f"{run.dir} ran on {saved['world_size']} ranks; resume it on as many, not {ctx.world_size}")
+    policy.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    unpack_optimizer(optimizer, tensors, saved["optimizer"])
+    unpack_rng(tensors, {"permutation": permutation_rng})
+    if ctx.rank:
+        torch.set_rng_state(tensors[f"rng.rank{ctx.rank}.torch"])
+    run.log({"type": "resume", "step": step})
+    return step + 1, saved["best_reward"], tensors["epoch_order"], saved["batch_in_epoch"]
 
 
 def state_noise_std(cfg: TrainConfig, progress: float) -> float:
@@ -285,38 +301,6 @@ def _evaluate(policy: nn.Module, normalization: dict, cfg: TrainConfig, acting_c
 def _last_eval(records: list[dict[str, Any]]) -> dict[str, Any] | None:
     evals = [r for r in records if r["type"] == "eval"]
     return {k: v for k, v in evals[-1].items() if k != "type"} if evals else None
-
-
-def _plot(records: list[dict[str, Any]], path: Any) -> None:
-    """learning_curve.png: training loss and evaluation scores against steps."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    train = [r for r in records if r["type"] == "train"]
-    evals = [r for r in records if r["type"] == "eval"]
-    fig, (ax_loss, ax_eval) = plt.subplots(1, 2, figsize=(11, 4))
-    ax_loss.plot([r["step"] for r in train], [r["loss"] for r in train], lw=1)
-    ax_loss.set(xlabel="step", ylabel="training loss", title="loss", yscale="log")
-    ax_loss.grid(alpha=0.3)
-    if evals:
-        steps = [r["step"] for r in evals]
-        ax_eval.plot(steps, [r["mean_max_reward"] for r in evals], "o-", label="mean max reward")
-        ax_eval.fill_between(steps, [r["mean_max_reward_ci95"][0] for r in evals],
-                             [r["mean_max_reward_ci95"][1] for r in evals], alpha=0.2)
-        ax_eval.plot(steps, [r["success_rate"] for r in evals], "s-", label="success rate")
-        ax_eval.legend(loc="upper left")
-        first = evals[0]["seeds"]
-        ax_eval.set_title(f"evaluation ({len(first)} episodes, seeds {first[0]}..{first[-1]})")
-    else:
-        ax_eval.set_title("evaluation (none yet)")
-    last_step = max([r["step"] for r in records], default=1)
-    ax_eval.set(xlabel="step", ylim=(0, 1), xlim=(0, last_step * 1.02))
-    ax_eval.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 if __name__ == "__main__":
