@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -106,8 +109,10 @@ def test_chunk_env_matches_the_plain_env_and_restarts_on_the_next_seed() -> None
 def test_config_is_validated_and_reproducible() -> None:
     with pytest.raises(SystemExit):
         parse_config(["--num-envs", "0"])
-    cfg = FinetuneConfig(iterations=7, name="x")
-    assert cfg.command() == "python -m training.finetune --init models/flow --name x --iterations 7"
+    with pytest.raises(SystemExit):
+        parse_config(["--algo", "dqn"])
+    cfg = FinetuneConfig(iterations=7, name="x", algo="qselect")
+    assert cfg.command() == "python -m training.finetune --algo qselect --init models/flow --name x --iterations 7"
     assert parse_config(cfg.command().split()[3:]) == cfg
 
 
@@ -116,30 +121,101 @@ def test_help_runs() -> None:
     assert out.returncode == 0 and "--success-bonus" in out.stdout and "default: 1.0" in out.stdout
 
 
-def test_a_short_real_run_saves_a_steered_flow_that_exports_and_acts(tmp_path: Path) -> None:
-    cfg = FinetuneConfig(name="ft", out_dir=str(tmp_path), iterations=3, num_envs=8, rollout_decisions=3, eval_every=3,
-                         eval_episodes=4, log_every=1, minibatch=12, steering_dims="32", critic_dims="32", progress=False, lr=1e-2)
-    run = finetune(cfg)
+def _tiny(tmp_path: Path, **overrides) -> FinetuneConfig:
+    settings = dict(name="ft", out_dir=str(tmp_path), iterations=3, num_envs=8, rollout_decisions=3, eval_every=3, eval_episodes=4,
+                    log_every=1, minibatch=12, batch_size=12, learning_starts=12, steering_dims="32", critic_dims="32",
+                    progress=False, lr=1e-2, label_envs=2, updates_per_decision=2)
+    return FinetuneConfig(**{**settings, **overrides})
+
+
+@pytest.mark.parametrize("algo, learned", [("ppo", "steering"), ("qselect", "selector")])
+def test_a_short_real_run_saves_a_flow_that_exports_and_acts(tmp_path: Path, algo: str, learned: str) -> None:
+    run = finetune(_tiny(tmp_path, algo=algo, label_candidates=4 if algo == "qselect" else 0)).dir
     card = load_card(run / "last")
-    assert card["architecture"]["steering_dims"] == [32] and card["finished"] and card["steps"] == 3
-    assert card["evaluation"]["seeds"] == [400000, 400003]
+    key = "steering_dims" if algo == "ppo" else "selector_dims"
+    assert card["architecture"][key] == [32] and card["finished"] and card["steps"] == 3
+    assert card["evaluation"]["seeds"] == [400000, 400003] and card["reproduce"]["finetune"].startswith("python -m training.finetune")
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records if r["type"] == "train"] == [1, 2, 3]
+    assert [r["step"] for r in records if r["type"] == "eval"] == [0, 3]
     assert (run / "learning_curve.png").stat().st_size > 0
-    # the frozen flow's weights are the shipped ones, the steering moved
+    assert json.loads((run / "state.json").read_text())["finished"] and not list(run.glob("state-*"))
+    # the frozen flow's weights are the shipped ones; the learned part moved
     tuned, _ = load_checkpoint(run / "last")
     base, _ = load_checkpoint(SHIPPED)
     for name, tensor in base.state_dict().items():
         assert torch.equal(tensor, tuned.state_dict()[name]), name
-    assert tuned.steering.mean_head.weight.abs().sum() > 0
-    # export and act: ONNX equals torch
+    fresh = build_policy("flow", **card["architecture"])
+    moved = [k for k, v in tuned.state_dict().items() if k.startswith(learned + ".") and not torch.equal(v, fresh.state_dict()[k])]
+    assert moved
+    # export and act: ONNX equals torch, with the contract's inputs
     onnx_path = run / "last.onnx"
     export_onnx(run / "last", onnx_path)
     acting = load_acting_policy(run / "last")
     rng = np.random.default_rng(0)
     states = (rng.uniform(100, 400, (5, 5)) * [1, 1, 1, 1, 0.01]).astype(np.float32)
     noise = rng.standard_normal((5, 12, 2)).astype(np.float32)
-    got = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"]).run(["actions"], {"state": states, "noise": noise})[0]
+    session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    assert sorted(i.name for i in session.get_inputs()) == ["noise", "state"]
+    got = session.run(["actions"], {"state": states, "noise": noise})[0]
     with torch.no_grad():
         want = acting(torch.from_numpy(states), torch.from_numpy(noise)).numpy()
     np.testing.assert_allclose(got, want, atol=1e-3)
+
+
+def test_the_selector_picks_the_candidate_its_critic_scores_highest() -> None:
+    _, steered, card = _steered_from_shipped()
+    arch = {**card["architecture"], "selector_dims": [16], "selector_candidates": 8}
+    policy = build_policy("flow", **arch)
+    selector = policy.selector
+    enc, noise = torch.randn(6, 6), torch.randn(6, 12, 2)
+    with torch.no_grad():
+        chosen = selector(enc, noise, 0.6)
+        cands = selector.candidates_of(noise, 0.6)
+        scores = torch.stack([selector.value(enc, cands[:, k]) for k in range(8)], dim=1)
+    for b in range(6):
+        assert torch.equal(chosen[b], cands[b, scores[b].argmax()])
+    assert torch.allclose(cands[:, 0], 0.6 * noise)  # candidate 0 is the plain flow's own start
+
+
+def test_lookahead_predicts_a_real_step_and_leaves_the_env_alone() -> None:
+    envs = ChunkVectorEnv(1, seed_start=10_000_000)
+    rng = np.random.default_rng(1)
+    block = envs.obs[0, 2:4]
+    chunks = (block + rng.normal(0, 30, (3, 12, 2))).astype(np.float32)
+    before = envs.obs.copy()
+    ahead = envs.lookahead(0, chunks)
+    np.testing.assert_array_equal(envs.obs, before)
+    real = envs.step(chunks[1:2])
+    np.testing.assert_allclose(ahead.next_obs[1], envs.obs[0], atol=1e-6)
+    assert abs(ahead.reward_end[1] - real.reward_end[0]) < 1e-9
+
+
+def test_a_reused_name_is_refused_and_a_stopped_run_resumes(tmp_path: Path) -> None:
+    cmd = [sys.executable, "-m", "training.finetune", "--name", "r", "--out-dir", str(tmp_path), "--num-envs", "4",
+           "--rollout-decisions", "1", "--iterations", "300", "--eval-every", "0", "--checkpoint-every", "50", "--log-every", "1",
+           "--steering-dims", "16", "--critic-dims", "16", "--minibatch", "4", "--no-progress"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log = tmp_path / "r" / "log.jsonl"
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and not (log.is_file() and log.read_text().count('"train"') >= 2):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    state = json.loads((tmp_path / "r" / "state.json").read_text())
+    stopped_at = state["step"]
+    assert not state["finished"] and 2 <= stopped_at < 300
+    assert not load_card(tmp_path / "r" / "last")["finished"]
+
+    again = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert again.returncode == 2 and "already exists" in again.stderr and "Traceback" not in again.stderr
+    changed = subprocess.run([*cmd, "--resume", "--lr", "0.1"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert changed.returncode == 2 and "lr" in changed.stderr and json.loads((tmp_path / "r" / "state.json").read_text()) == state
+
+    done = subprocess.run([*cmd, "--resume"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert [r["step"] for r in records if r["type"] == "train"] == list(range(1, 301))  # no step lost or repeated
+    assert [r["step"] for r in records if r["type"] == "resume"] == [stopped_at]
+    assert load_card(tmp_path / "r" / "last")["finished"]

@@ -14,7 +14,6 @@ service and the client take it as they take any flow.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -23,27 +22,29 @@ import numpy as np
 import torch
 
 from training.chunk_env import ChunkVectorEnv
-from training.finetune_config import FinetuneConfig, parse_config
+from training.finetune_config import RESUMABLE_CHANGES, FinetuneConfig, parse_config
 from training.noise_rl import ALGORITHMS, NoiseAgent
 
 __all__ = ["finetune", "main"]
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Command-line entry point."""
+    """Command-line entry point: 0 when finished, 2 on a bad setting, 128 + N when stopped by signal N."""
+    from training.run import RunError
+
     cfg = parse_config(argv)
     try:
-        finetune(cfg)
-    except (ValueError, FileNotFoundError) as exc:
+        return finetune(cfg).exit_code()
+    except (RunError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    return 0
 
 
-def finetune(cfg: FinetuneConfig) -> Path:
-    """Run one fine-tuning as configured; returns the run folder."""
+def finetune(cfg: FinetuneConfig):
+    """Run (or resume) one fine-tuning as configured; returns its `training.run.Run` (folder in `.dir`)."""
     from training.checkpoint import git_commit, load_checkpoint, save_checkpoint
     from training.evaluate import evaluate_policy
+    from training.run import Run, RunStopped, pack_rng, unpack_rng
 
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -53,16 +54,19 @@ def finetune(cfg: FinetuneConfig) -> Path:
     agent = NoiseAgent(base, base_card, cfg)
     generator = torch.Generator().manual_seed(cfg.seed)
     algorithm = ALGORITHMS[cfg.algo](agent, cfg, generator)
-
-    run_dir = Path(cfg.out_dir) / cfg.name
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
-    print(f"config: {json.dumps(cfg.to_dict())}", file=sys.stderr)
-    log = _Log(run_dir)
-    card = {"name": "flow", "config": cfg.to_dict(), "git_commit": git_commit(), "init": str(cfg.init)}
-    envs = ChunkVectorEnv(cfg.num_envs, cfg.train_seed_start)
-    start = time.perf_counter()
-    bar = _progress_bar(cfg.iterations, cfg.progress)
+    run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite, may_change=RESUMABLE_CHANGES)
+    card = {"name": "flow", "config": cfg.to_dict(), "git_commit": git_commit(), "init": str(cfg.init), "reproduce": {"finetune": cfg.command()}}
+    first, episodes_before = 1, 0
+    state = run.load_state()
+    if state is not None:
+        step, tensors, extra = state
+        algorithm.load_state(tensors, extra)
+        unpack_rng(tensors, {"main": generator})
+        first, episodes_before = step + 1, extra["episodes_started"]
+        run.log({"type": "resume", "step": step})
+    # training seeds go on where they stopped: a resumed run never replays an episode seed
+    envs = ChunkVectorEnv(cfg.num_envs, cfg.train_seed_start + episodes_before)
+    bar = _progress_bar(cfg.iterations, cfg.progress, first - 1)
 
     def evaluate(iteration: int) -> dict:
         summary = evaluate_policy(agent.acting, "flow", episodes=cfg.eval_episodes, seed=cfg.eval_seed, num_steps=cfg.flow_num_steps)
@@ -70,84 +74,93 @@ def finetune(cfg: FinetuneConfig) -> Path:
                   "mean_max_reward_ci95": list(summary.mean_max_reward_ci95), "success_rate": summary.success_rate,
                   "success_rate_ci95": list(summary.success_rate_ci95), "seeds": [summary.seeds[0], summary.seeds[-1]],
                   "episodes": len(summary.episodes)}
-        log.write(record)
+        run.log(record)
         return record
 
-    def checkpoint(iteration: int, evaluation: dict | None) -> None:
-        save_checkpoint(str(run_dir / "last"), agent.policy, agent.normalization, **card, steps=iteration,
-                        wall_time_s=time.perf_counter() - start, evaluation=evaluation, finished=iteration == cfg.iterations)
+    def save(iteration: int, finished: bool = False) -> None:
+        evaluation = next((r for r in reversed(run.records) if r["type"] == "eval"), None)
+        save_checkpoint(str(run.dir / "last"), agent.policy, agent.normalization, **card, steps=iteration,
+                        wall_time_s=run.elapsed_s, evaluation=evaluation, finished=finished)
+        if not finished:
+            tensors, extra = algorithm.state()
+            run.save_state(iteration, {**tensors, **pack_rng({"main": generator})},
+                           {**extra, "episodes_started": episodes_before + envs.episodes_started})
+        _plot(run.records, run.dir / "learning_curve.png")
 
-    last_eval = evaluate(0) if cfg.eval_every > 0 else None
+    if first == 1 and cfg.eval_every > 0:
+        evaluate(0)
     finished_max: list[float] = []
     finished_success: list[bool] = []
-    for iteration in range(1, cfg.iterations + 1):
-        stats = algorithm.iterate(envs, finished_max, finished_success)
-        if iteration % cfg.log_every == 0 or iteration == cfg.iterations:
-            record = {"type": "train", "step": iteration, "decisions": iteration * cfg.num_envs * cfg.rollout_decisions,
-                      "episodes": envs.episodes_started,
-                      "episode_max_reward": float(np.mean(finished_max)) if finished_max else None,
-                      "episode_success": float(np.mean(finished_success)) if finished_success else None,
-                      "wall_time_s": time.perf_counter() - start, **stats}
-            if agent.steering is not None:
-                record["std"] = float(agent.steering.std().mean().detach())
-            log.write(record)
-            finished_max.clear()
-            finished_success.clear()
-            bar.set_postfix(success=record["episode_success"])
-        if cfg.eval_every > 0 and (iteration % cfg.eval_every == 0 or iteration == cfg.iterations):
-            last_eval = evaluate(iteration)
-            checkpoint(iteration, last_eval)
-            log.plot()
-        bar.update(1)
-    bar.close()
-    checkpoint(cfg.iterations, last_eval)
-    log.plot()
-    print(f"run dir: {run_dir}", file=sys.stderr)
-    return run_dir
+    iteration = first - 1
+    try:
+        for iteration in range(first, cfg.iterations + 1):
+            stats = algorithm.iterate(envs, finished_max, finished_success)
+            if iteration % cfg.log_every == 0 or iteration == cfg.iterations:
+                record = {"type": "train", "step": iteration, "episodes": episodes_before + envs.episodes_started,
+                          "episode_max_reward": float(np.mean(finished_max)) if finished_max else None,
+                          "episode_success": float(np.mean(finished_success)) if finished_success else None,
+                          "wall_time_s": run.elapsed_s, **stats}
+                if agent.steering is not None:
+                    record["std"] = float(agent.steering.std().mean().detach())
+                run.log(record)
+                finished_max.clear()
+                finished_success.clear()
+                bar.set_postfix(success=record["episode_success"])
+            bar.update(1)
+            if cfg.eval_every > 0 and iteration % cfg.eval_every == 0 and iteration < cfg.iterations:
+                with run.interruptible():  # a stop must not wait for a long evaluation
+                    evaluate(iteration)
+            if run.stop_requested or (iteration < cfg.iterations and iteration % cfg.checkpoint_every == 0):
+                save(iteration)
+            if run.stop_requested:
+                break
+        else:
+            if cfg.eval_every > 0:
+                evaluate(cfg.iterations)
+            save(cfg.iterations, finished=True)
+            run.finish(cfg.iterations)
+            print(f"done: {cfg.iterations} iterations in {run.elapsed_s:.0f} s; outputs in {run.dir}", file=sys.stderr)
+    except RunStopped:
+        save(iteration)
+    finally:
+        bar.close()
+        run.close()
+    if run.stop_requested:
+        print(f"stopped by {run.stop_signal} after iteration {iteration} of {cfg.iterations}; continue with the same command "
+              f"and --resume (state in {run.dir})", file=sys.stderr)
+    return run
 
 
-class _Log:
-    """log.jsonl and learning_curve.png of a fine-tuning run."""
+def _plot(records: list[dict], path: Path) -> None:
+    """The learning curve: training episodes' success and periodic evaluation with its interval."""
+    import matplotlib
 
-    def __init__(self, run_dir: Path) -> None:
-        self.path = run_dir / "log.jsonl"
-        self.path.write_text("")
-        self.records: list[dict] = []
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
 
-    def write(self, record: dict) -> None:
-        self.records.append(record)
-        with self.path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
-
-    def plot(self) -> None:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        train = [r for r in self.records if r["type"] == "train" and r["episode_success"] is not None]
-        evals = [r for r in self.records if r["type"] == "eval"]
-        fig, ax = plt.subplots(figsize=(7, 4))
-        ax.plot([r["step"] for r in train], [r["episode_success"] for r in train], lw=1, alpha=0.6, label="training episodes: success")
-        if evals:
-            steps = [r["step"] for r in evals]
-            ax.plot(steps, [r["success_rate"] for r in evals], "s-", label="evaluation: success")
-            ax.fill_between(steps, [r["success_rate_ci95"][0] for r in evals], [r["success_rate_ci95"][1] for r in evals], alpha=0.2)
-            ax.plot(steps, [r["mean_max_reward"] for r in evals], "o-", label="evaluation: mean max reward")
-            first, last = evals[0]["seeds"]
-            ax.set_title(f"noise-space PPO (evaluation: {evals[0]['episodes']} episodes, seeds {first}..{last})")
-        ax.set(xlabel="PPO iteration", ylim=(0, 1.02))
-        ax.grid(alpha=0.3)
-        ax.legend(loc="lower right")
-        fig.tight_layout()
-        fig.savefig(self.path.with_name("learning_curve.png"), dpi=100)
-        plt.close(fig)
+    train = [r for r in records if r["type"] == "train" and r.get("episode_success") is not None]
+    evals = [r for r in records if r["type"] == "eval"]
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot([r["step"] for r in train], [r["episode_success"] for r in train], lw=1, alpha=0.6, label="training episodes: success")
+    if evals:
+        steps = [r["step"] for r in evals]
+        ax.plot(steps, [r["success_rate"] for r in evals], "s-", label="evaluation: success")
+        ax.fill_between(steps, [r["success_rate_ci95"][0] for r in evals], [r["success_rate_ci95"][1] for r in evals], alpha=0.2)
+        ax.plot(steps, [r["mean_max_reward"] for r in evals], "o-", label="evaluation: mean max reward")
+        first, last = evals[0]["seeds"]
+        ax.set_title(f"noise-space fine-tuning (evaluation: {evals[0]['episodes']} episodes, seeds {first}..{last})")
+    ax.set(xlabel="iteration", ylim=(0, 1.02))
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
-def _progress_bar(total: int, enabled: bool):
+def _progress_bar(total: int, enabled: bool, done: int):
     from tqdm import tqdm
 
-    return tqdm(total=total, desc="finetune", unit="it", disable=not enabled, file=sys.stderr)
+    return tqdm(total=total, initial=done, desc="finetune", unit="it", disable=not enabled, file=sys.stderr)
 
 
 if __name__ == "__main__":

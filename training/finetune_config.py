@@ -7,7 +7,6 @@ the tuning range 300000..).
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -15,14 +14,16 @@ from training.cli import build_parser, command_line, option
 from training.ppo import PPOSettings
 
 PROG = "python -m training.finetune"
-ALGOS = ("ppo", "sac", "qselect")
+# fields that do not change what a run computes, so --resume accepts new values
+RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_every")
+ALGOS = ("ppo", "qselect")
 
 
 @dataclass
 class FinetuneConfig:
     """Everything that defines a fine-tuning run."""
 
-    algo: str = option("ppo", "ppo (on-policy, clipped surrogate), sac (off-policy, replay, twin critics) or qselect (a critic picks the best of --candidates starts)", choices=ALGOS)
+    algo: str = option("ppo", "ppo (a steering network, on-policy clipped surrogate) or qselect (a critic picks the best of --candidates starts)", choices=ALGOS)
     init: str = option("models/flow", "flow checkpoint stem whose start noise is steered (its weights stay frozen)")
     name: str = option("flow-dsrl", "run name; outputs go to OUT_DIR/NAME")
     out_dir: str = option("runs", "parent folder of run folders")
@@ -40,20 +41,21 @@ class FinetuneConfig:
     minibatch: int = option(256, "PPO minibatch size")
     entropy_coef: float = option(0.0, "entropy bonus of the steering's Gaussian")
     success_bonus: float = option(1.0, "reward added when a chunk lands the block (coverage > 0.95)")
-    batch_size: int = option(256, "sac: minibatch size")
-    buffer_size: int = option(1_000_000, "sac: replay capacity (transitions)")
-    learning_starts: int = option(20_000, "sac: transitions in the replay before the actor moves (the critics learn first)")
-    updates_per_decision: int = option(16, "sac: gradient updates after each decision step of all envs")
+    batch_size: int = option(256, "qselect: minibatch size")
+    buffer_size: int = option(1_000_000, "qselect: replay capacity (transitions)")
+    learning_starts: int = option(20_000, "qselect: played transitions before the critic chooses (plain flow sampling until then)")
+    updates_per_decision: int = option(16, "qselect: gradient updates after each decision step of all envs")
     candidates: int = option(16, "qselect: candidate starts the critic chooses from at each decision")
     label_candidates: int = option(0, "qselect: fresh starts simulated one chunk ahead from a visited state to label Q (0: off)")
     label_envs: int = option(32, "qselect: envs whose state is labelled at each decision step")
-    tau: float = option(0.005, "sac: Polyak rate of the target critics")
-    target_std: float = option(0.3, "sac: the temperature aims at the entropy of a Gaussian start with this std per dimension")
     flow_num_steps: int = option(10, "Euler steps of the frozen flow")
     train_seed_start: int = option(10_000_000, "first training episode seed (episodes use consecutive seeds)")
     eval_every: int = option(50, "evaluate (and checkpoint) every N iterations (0: only at the end)")
     eval_episodes: int = option(200, "episodes per evaluation")
     eval_seed: int = option(400_000, "first evaluation episode seed (never a held-out one)")
+    checkpoint_every: int = option(25, "save a resumable state and the `last` checkpoint every N iterations (and on SIGTERM/SIGINT)")
+    resume: bool = option(False, "continue the existing run NAME to its configured iterations from its latest resumable state (same config)")
+    overwrite: bool = option(False, "delete the existing run NAME and start it again")
     log_every: int = option(5, "write a log.jsonl record every N iterations")
     seed: int = option(0, "seed of torch (start noise, minibatch order, initialization)")
     threads: int = option(1, "torch intra-op threads")
@@ -63,16 +65,18 @@ class FinetuneConfig:
         if self.algo not in ALGOS:
             raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
         positive = ("iterations", "num_envs", "rollout_decisions", "epochs", "minibatch", "flow_num_steps", "eval_episodes", "log_every",
-                    "threads", "batch_size", "buffer_size", "updates_per_decision", "label_envs")
+                    "threads", "batch_size", "buffer_size", "updates_per_decision", "label_envs", "checkpoint_every")
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("lr", "critic_lr", "clip", "tau", "target_std"):
+        for name in ("lr", "critic_lr", "clip"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("gamma", "gae_lambda"):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+        if self.resume and self.overwrite:
+            raise ValueError("--resume and --overwrite exclude each other")
         if self.label_candidates < 0:
             raise ValueError(f"label_candidates must be >= 0, got {self.label_candidates}")
         if self.eval_every < 0 or self.train_seed_start < 0 or self.eval_seed < 0 or self.seed < 0:
@@ -92,21 +96,14 @@ class FinetuneConfig:
         """The PPO update's hyperparameters."""
         return PPOSettings(self.gamma, self.gae_lambda, self.clip, self.epochs, self.minibatch, self.entropy_coef)
 
-    def sac_settings(self, chunk_shape: tuple[int, int]) -> "SACSettings":
-        """The SAC update's hyperparameters; the target entropy is that of N(0, target_std^2) per start-noise dimension."""
-        from training.sac import SACSettings
-
-        dims = chunk_shape[0] * chunk_shape[1]
-        target_entropy = dims * (0.5 * math.log(2 * math.pi * math.e) + math.log(self.target_std))
-        return SACSettings(self.gamma, self.tau, self.batch_size, self.lr, self.critic_lr, target_entropy)
-
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of every field."""
         return asdict(self)
 
     def command(self) -> str:
         """The command that reproduces this config."""
-        return command_line(FinetuneConfig, PROG, self.to_dict(), always=("init", "name"))
+        config = {k: v for k, v in self.to_dict().items() if k not in ("resume", "overwrite")}
+        return command_line(FinetuneConfig, PROG, config, always=("init", "name"))
 
 
 def parse_config(argv: list[str] | None = None) -> FinetuneConfig:

@@ -16,6 +16,41 @@ from training.ppo import Critic, Rollout, ppo_update
 __all__ = ["ALGORITHMS", "NoiseAgent"]
 
 
+class _Resumable:
+    """What a resumable checkpoint of an adapter holds: its modules, optimizers and replays, by name."""
+
+    def parts(self) -> tuple[dict, dict, dict]:
+        """(modules, optimizers, replays) by name."""
+        raise NotImplementedError
+
+    def state(self) -> tuple[dict[str, torch.Tensor], dict]:
+        """Tensors and JSON that `load_state` takes back."""
+        from training.run import pack_optimizer
+
+        modules, optimizers, replays = self.parts()
+        tensors = {f"{name}.{k}": v for name, module in modules.items() for k, v in module.state_dict().items()}
+        extra: dict = {"optimizers": {}, "replays": {}}
+        for name, optimizer in optimizers.items():
+            packed, extra["optimizers"][name] = pack_optimizer(optimizer, prefix=f"opt.{name}")
+            tensors.update(packed)
+        for name, replay in replays.items():
+            packed, extra["replays"][name] = replay.state(prefix=f"replay.{name}")
+            tensors.update(packed)
+        return tensors, extra
+
+    def load_state(self, tensors: dict[str, torch.Tensor], extra: dict) -> None:
+        """Restore what `state` saved."""
+        from training.run import unpack_optimizer
+
+        modules, optimizers, replays = self.parts()
+        for name, module in modules.items():
+            module.load_state_dict({k[len(name) + 1 :]: v for k, v in tensors.items() if k.startswith(name + ".")})
+        for name, optimizer in optimizers.items():
+            unpack_optimizer(optimizer, tensors, extra["optimizers"][name], prefix=f"opt.{name}")
+        for name, replay in replays.items():
+            replay.load_state(f"replay.{name}", tensors, extra["replays"][name])
+
+
 class NoiseAgent:
     """The flow with fresh steering, as both algorithms see it: observations in, start noises and actions out."""
 
@@ -70,7 +105,7 @@ def _chunk_reward(result, cfg: FinetuneConfig) -> torch.Tensor:
     return torch.as_tensor(result.reward_end - result.reward_start + cfg.success_bonus * result.success, dtype=torch.float32)
 
 
-class _PPO:
+class _PPO(_Resumable):
     """On-policy: `rollout_decisions` chunks in every env, then clipped-surrogate epochs."""
 
     def __init__(self, agent: NoiseAgent, cfg: FinetuneConfig, generator: torch.Generator) -> None:
@@ -78,6 +113,11 @@ class _PPO:
         self.critic = Critic(agent.encoded_dim, cfg.critic_dims_list())
         self.actor_opt = torch.optim.Adam(agent.steering.parameters(), lr=cfg.lr)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+
+    def parts(self) -> tuple[dict, dict, dict]:
+        """(modules, optimizers, replays) by name."""
+        return ({"steering": self.agent.steering, "critic": self.critic},
+                {"actor": self.actor_opt, "critic": self.critic_opt}, {})
 
     def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
         """One rollout and update; returns figures for the log."""
@@ -100,38 +140,7 @@ class _PPO:
                           self.cfg.ppo_settings(), self.generator)
 
 
-class _SAC:
-    """Off-policy: each decision of every env goes to a replay; `updates_per_decision` updates follow each one."""
-
-    def __init__(self, agent: NoiseAgent, cfg: FinetuneConfig, generator: torch.Generator) -> None:
-        from training.sac import ReplayBuffer, SACLearner
-
-        self.agent, self.cfg, self.generator = agent, cfg, generator
-        self.learner = SACLearner(agent.steering, agent.encoded_dim, agent.noise_scale, cfg.sac_settings(agent.chunk_shape),
-                                  cfg.critic_dims_list())
-        self.replay = ReplayBuffer(cfg.buffer_size, agent.encoded_dim, agent.chunk_shape[0] * agent.chunk_shape[1])
-
-    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
-        """`rollout_decisions` decisions, each followed by its updates; returns the last update's figures."""
-        stats: dict = {}
-        for _ in range(self.cfg.rollout_decisions):
-            encoded, clock, x0, actions = self.agent.act(envs, self.generator)
-            result = envs.step(actions)
-            finished_max.extend(result.finished_max_reward)
-            finished_success.extend(result.finished_success)
-            # an env that ended restarted at once: its next state is a fresh episode's, but done cuts the bootstrap
-            next_encoded, next_clock = self.agent.observe(envs)
-            self.replay.add(enc=encoded, clock=clock, x0=x0, reward=_chunk_reward(result, self.cfg),
-                            done=torch.as_tensor(result.done, dtype=torch.float32), next_enc=next_encoded, next_clock=next_clock)
-            if self.replay.size < self.cfg.batch_size:
-                continue
-            for _ in range(self.cfg.updates_per_decision):
-                batch = self.replay.sample(self.cfg.batch_size, self.generator)
-                stats = self.learner.update(batch, update_actor=self.replay.size >= self.cfg.learning_starts, generator=self.generator)
-        return stats
-
-
-class _QSelect:
+class _QSelect(_Resumable):
     """Approximate policy iteration in the noise space; acting picks the best of K candidate starts by Q.
 
     V(state, clock) regresses the Monte Carlo returns of recent episodes; Q(state, x0) regresses
@@ -145,7 +154,7 @@ class _QSelect:
     FIELDS = {"enc": 0, "clock": 1, "x0": 0, "reward": 1, "done": 1, "next_enc": 0, "next_clock": 1}
 
     def __init__(self, agent: NoiseAgent, cfg: FinetuneConfig, generator: torch.Generator) -> None:
-        from training.sac import ReplayBuffer
+        from training.replay import ReplayBuffer
 
         self.agent, self.cfg, self.generator = agent, cfg, generator
         self.selector = agent.policy.selector
@@ -155,6 +164,11 @@ class _QSelect:
         self.played = ReplayBuffer(cfg.buffer_size, agent.encoded_dim, noise_dim, {**self.FIELDS, "ret": 1})
         self.labels = ReplayBuffer(cfg.buffer_size, agent.encoded_dim, noise_dim, self.FIELDS) if cfg.label_candidates else None
         self.pending: list[list[dict[str, torch.Tensor]]] = [[] for _ in range(cfg.num_envs)]
+
+    def parts(self) -> tuple[dict, dict, dict]:
+        """(modules, optimizers, replays) by name."""
+        replays = {"played": self.played, **({"labels": self.labels} if self.labels is not None else {})}
+        return {"selector": self.selector, "value": self.value}, {"critics": self.opt}, replays
 
     @property
     def selecting(self) -> bool:
@@ -228,4 +242,4 @@ class _QSelect:
         return float(q_loss.detach()), float(v_loss.detach())
 
 
-ALGORITHMS = {"ppo": _PPO, "sac": _SAC, "qselect": _QSelect}
+ALGORITHMS = {"ppo": _PPO, "qselect": _QSelect}

@@ -8,8 +8,13 @@
         if step % every == 0 or run.stop_requested:                # periodic, and on SIGTERM/SIGINT
             run.save_state(step, tensors, extra)                   # state.json + state-STEP.safetensors
         if run.stop_requested:
-            break                        # exit with run.exit_code(): 128 + the signal number
-    run.finish()                         # state.json says finished (at the last logged step); the big state file goes
+            break                        # then exit with run.exit_code(): 128 + the signal number
+    else:
+        run.finish()                     # every step ran: state.json says finished, the big state file goes
+    run.close()                          # (or `with Run.start(...) as run:`) gives SIGTERM/SIGINT back
+
+`run.dir` is the folder, `run.records` the log so far (reloaded on resume), `run.elapsed_s` the wall
+time over all starts (for cards).
 
 Call `Run.start` after the loop's own setup (data, model) has succeeded, so a failed start leaves the
 disk as it was; `Run.start` checks everything before it writes. It refuses an existing folder (one line,

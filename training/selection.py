@@ -40,24 +40,23 @@ class NoiseSelector(nn.Module):
         self.q = nn.Sequential(*layers, nn.Linear(prev, 1))
         self.register_buffer("rotations", _orthogonal_maps(self.candidates, dim))
 
+    # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def value(self, encoded_state: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
         """Q [B] of starts x0 [B, H, A] in encoded states [B, S']."""
-        return self.q(torch.cat([encoded_state, x0.reshape(len(encoded_state), -1)], dim=1)).squeeze(1)
+        return self.q(torch.cat([encoded_state, x0.flatten(1)], dim=1)).squeeze(1)
 
     def candidates_of(self, noise: torch.Tensor, noise_scale: float) -> torch.Tensor:
         """The K candidate starts [B, K, H, A] of standard-normal `noise` [B, H, A] (candidate 0 is noise_scale * noise)."""
-        flat = noise.reshape(noise.shape[0], -1)
-        cands = torch.einsum("bd,ked->bke", flat, self.rotations)
-        return (noise_scale * cands).reshape(noise.shape[0], self.candidates, *self.chunk_shape)
+        cands = torch.einsum("bd,ked->bke", noise.flatten(1), self.rotations)
+        return (noise_scale * cands).reshape(-1, self.candidates, *self.chunk_shape)
 
     def forward(self, encoded_state: torch.Tensor, noise: torch.Tensor, noise_scale: float) -> torch.Tensor:
         """The flow's start x0 [B, H, A]: the candidate of `noise` with the highest Q."""
-        batch, k = noise.shape[0], self.candidates
+        k = self.candidates
         cands = self.candidates_of(noise, noise_scale)
-        states = encoded_state.unsqueeze(1).expand(batch, k, encoded_state.shape[1]).reshape(batch * k, -1)
-        scores = self.value(states, cands.reshape(batch * k, *self.chunk_shape)).reshape(batch, k)
-        best = scores.argmax(dim=1)
-        index = best.reshape(batch, 1, 1, 1).expand(batch, 1, *self.chunk_shape)
+        states = encoded_state.unsqueeze(1).expand(-1, k, -1).reshape(-1, encoded_state.shape[1])
+        scores = self.value(states, cands.reshape(-1, *self.chunk_shape)).reshape(-1, k)
+        index = scores.argmax(dim=1).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
         return torch.gather(cands, 1, index).squeeze(1)
 
 
