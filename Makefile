@@ -1,5 +1,6 @@
 # Two commands on a fresh machine with Python 3.11 and make:
 #   make serve   create .venv if missing, install the serving extra, serve the shipped policies
+#                (holds its terminal; make serve PORT=8001, PUSHT_MODELS_DIR=runs/served make serve)
 #   make test    create .venv if missing, install everything, run the test suite
 PYTHON ?= python3
 VENV ?= .venv
@@ -22,6 +23,7 @@ $(VENV)/.test-installed: pyproject.toml | $(VENV)/bin/python
 	touch $@ $(VENV)/.serve-installed
 
 serve: $(VENV)/.serve-installed
+	@echo "serving $${PUSHT_MODELS_DIR:-models} on http://$(HOST):$(PORT) until Ctrl-C; talk to it from another terminal"
 	$(PY) -m service --host $(HOST) --port $(PORT)
 
 test: $(VENV)/.test-installed
