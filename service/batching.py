@@ -52,7 +52,7 @@ class _Item:
     arrived: float
     unit: int
     taken: int = 0
-    """rows handed to model calls so far; set to all rows when the request is dropped"""
+    """rows handed to model calls so far; set to all rows when the request is dropped (its future done early)"""
     done: int = 0
     noise: np.ndarray | None = None
     out: np.ndarray | None = None
@@ -101,7 +101,7 @@ class Batcher:
     def enqueue(
         self, states: np.ndarray, seed: int | None = None, num_steps: int | None = None, seeds: Sequence[int] | None = None
     ) -> asyncio.Future:
-        """Queue a request; its future gets the actions. Finishing the future early (client gone) drops its queued rows."""
+        """Queue a request; its future gets the actions. Finishing it early (client gone) drops its rows not yet computed."""
         rows = len(states)
         if self._closed:
             raise Overloaded(f"policy {self.policy.name!r} is shutting down")
@@ -113,9 +113,7 @@ class Batcher:
             )
         loop = asyncio.get_running_loop()
         future = loop.create_future()
-        item = _Item(states, seed, seeds, num_steps, future, loop.time(), unit)
-        future.add_done_callback(lambda _: self._drop_rest(item))
-        self._pending.append(item)
+        self._pending.append(_Item(states, seed, seeds, num_steps, future, loop.time(), unit))
         self._pending_cost += rows * unit
         self._pending_rows += rows
         self._schedule(loop)
@@ -130,13 +128,24 @@ class Batcher:
                 item.future.set_exception(Overloaded(f"policy {self.policy.name!r} is shutting down"))
         self._executor.shutdown(wait=True)
 
-    def _drop_rest(self, item: _Item) -> None:
-        """Once a request's future is done, its rows not yet handed to the model stop counting."""
+    def worth_watching(self) -> bool:
+        """Whether more than two calls of work are queued: then a client that hangs up should have its rows dropped."""
+        return self._pending_cost > 2 * self.max_cost
+
+    def purge(self) -> None:
+        """Drop the queued rows of requests whose future is done (their clients left), so they stop counting at once."""
+        for item in self._pending:
+            self._drop(item)
+
+    def _drop(self, item: _Item) -> bool:
+        """Drop the untaken rows of a request whose future is done (client gone); True if it was dropped."""
+        if not item.future.done():
+            return False
         left = len(item.states) - item.taken
-        if left:
-            item.taken += left
-            self._pending_cost -= left * item.unit
-            self._pending_rows -= left
+        item.taken += left
+        self._pending_cost -= left * item.unit
+        self._pending_rows -= left
+        return True
 
     def _schedule(self, loop: asyncio.AbstractEventLoop) -> None:
         if self._busy or not self._pending:
@@ -176,7 +185,7 @@ class Batcher:
     def _take_batch(self) -> list[_Slice]:
         """The next call's rows: the oldest request's num_steps, max-min fair shares of the call's budget."""
         pending = self._pending
-        while pending and pending[0].taken == len(pending[0].states):
+        while pending and (pending[0].taken == len(pending[0].states) or self._drop(pending[0])):
             pending.popleft()
         if not pending:
             return []
@@ -184,7 +193,7 @@ class Batcher:
         if len(pending) == 1:
             group = [pending[0]]
         else:
-            live = [item for item in pending if item.taken < len(item.states)]
+            live = [item for item in pending if item.taken < len(item.states) and not self._drop(item)]
             pending.clear()
             pending.extend(live)
             group = sorted((item for item in live if item.num_steps == steps), key=lambda it: len(it.states) - it.taken)
