@@ -6,8 +6,9 @@ num_steps, an mse row 1) and `max_rows` rows, only rows with the oldest request'
 call's rows are shared max-min fairly: requests with few rows left go whole, and bulk requests split
 the rest evenly. When small requests wait beside bulk ones, the next call is short (an eighth of the
 budget), so a 1-row request waits about one call however many 1,024-row batches are queued, while
-bulk rows still fill the calls (a model's cost per row is flat beyond a few dozen rows). Noise is drawn per request (`seed`) or per row (`seeds`) and sliced, so an answer never
-depends on what else was in the batch. Requests whose client left (their future is done) are
+bulk rows still fill the calls (a model's cost per row is flat beyond a few dozen rows). Noise is drawn per request (`seed`) or per row (`seeds`) and sliced, and every call is padded to
+a multiple of 4 rows (`pusht.rollout.pad_rows`), so an answer never depends, to the last bit, on
+what else was in the batch. Requests whose client left (their future is done) are
 dropped before their rows reach the model. Compute runs in the worker thread (ONNX Runtime and torch
 release the GIL), off the event loop.
 """
@@ -22,7 +23,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from pusht.rollout import chunk_noise, row_noise
+from pusht.rollout import chunk_noise, pad_rows, row_noise
 from service.backends import ACTION_DIM, HORIZON, LoadedPolicy
 
 __all__ = ["Batcher", "Overloaded", "evaluations"]
@@ -231,8 +232,10 @@ class Batcher:
         noise = None
         if policy.kind == "flow":
             parts = [self._noise(*part) for part in batch]
-            noise = parts[0] if len(parts) == 1 else np.concatenate(parts)
-        actions = policy.act(states, noise, batch[0][0].num_steps)
+            noise = pad_rows(parts[0] if len(parts) == 1 else np.concatenate(parts))
+        # CPU matrix products round a full group of 4 rows differently (last bit) from a tail of 1-3:
+        # padded calls make each row's actions bitwise independent of its batch (pusht.seeding).
+        actions = policy.act(pad_rows(states), noise, batch[0][0].num_steps)[: len(states)]
         if self._observe is not None:
             self._observe(policy.name, len(states), len(batch))
         return actions
