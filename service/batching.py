@@ -100,9 +100,10 @@ class Batcher:
         return await self.enqueue(states, seed, num_steps, seeds)
 
     def enqueue(
-        self, states: np.ndarray, seed: int | None = None, num_steps: int | None = None, seeds: Sequence[int] | None = None
+        self, states: np.ndarray, seed: int | None = None, num_steps: int | None = None, seeds: Sequence[int] | None = None,
+        noise: np.ndarray | None = None,
     ) -> asyncio.Future:
-        """Queue a request; its future gets the actions. Finishing it early (client gone) drops its rows not yet computed."""
+        """Queue a request (`noise`: the caller's own flow noise [B, 12, 2]); its future gets the actions; finished early, its rows drop."""
         rows = len(states)
         if self._closed:
             raise Overloaded(f"policy {self.policy.name!r} is shutting down")
@@ -114,7 +115,7 @@ class Batcher:
             )
         loop = asyncio.get_running_loop()
         future = loop.create_future()
-        self._pending.append(_Item(states, seed, seeds, num_steps, future, loop.time(), unit))
+        self._pending.append(_Item(states, seed, seeds, num_steps, future, loop.time(), unit, noise=noise))
         self._pending_cost += rows * unit
         self._pending_rows += rows
         self._schedule(loop)
@@ -241,6 +242,8 @@ class Batcher:
         return actions
 
     def _noise(self, item: _Item, start: int, stop: int) -> np.ndarray:
+        if item.noise is not None and item.seed is None:  # the caller's own noise (the OIP `noise` input)
+            return item.noise[start:stop]
         if item.seeds is not None:
             return row_noise(item.seeds[start:stop], HORIZON, ACTION_DIM)
         if item.seed is not None:
