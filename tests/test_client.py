@@ -21,12 +21,6 @@ SEED = 100000
 # Short e2e runs: 4 episodes over 2 envs, 60 steps each.
 SHORT = ["--episodes", "4", "--num-envs", "2", "--max-steps", "60", "--seed", str(SEED)]
 FORBIDDEN_IMPORTS = ("torch", "training", "service", "onnxruntime", "fastapi")
-# Until service/batching.py pads each model call to pusht.rollout.BATCH_MULTIPLE rows (pad_rows), a
-# served batch of 3 rounds its rows differently from the in-process padded one. Not strict: one full
-# run passed them unexplained (6 of 6 direct tries failed), so strict would make the suite flaky.
-SERVER_PADS_NOT_YET = pytest.mark.xfail(
-    strict=False, reason="service/batching.py does not pad model calls to a multiple of 4 rows (pusht.rollout.pad_rows) yet",
-)
 
 
 def run_client(*args: str, importtime: bool = False, timeout: float = 180) -> subprocess.CompletedProcess:
@@ -234,7 +228,6 @@ def test_e2e_server_errors_are_one_line(server):
 
 
 @pytest.mark.slow
-@SERVER_PADS_NOT_YET
 @pytest.mark.parametrize("policy", ["flow", "mse"])
 def test_http_equals_in_process_evaluation_for_any_num_envs(server, models_dir, policy):
     """Same model and seeds: HTTP with 3 envs in lockstep plays exactly the episodes of in-process runs with 1 or 4."""
@@ -264,7 +257,6 @@ def test_http_equals_in_process_evaluation_for_any_num_envs(server, models_dir, 
 
 
 @pytest.mark.slow
-@SERVER_PADS_NOT_YET
 def test_client_and_evaluate_write_the_same_episode_records(server, models_dir, tmp_path):
     """The two command lines, with different --num-envs, write identical per-episode files and scores."""
     flags = ["--episodes", "4", "--max-steps", "60", "--seed", str(SEED), "--no-progress"]
