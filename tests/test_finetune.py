@@ -219,3 +219,19 @@ def test_a_reused_name_is_refused_and_a_stopped_run_resumes(tmp_path: Path) -> N
     assert [r["step"] for r in records if r["type"] == "train"] == list(range(1, 301))  # no step lost or repeated
     assert [r["step"] for r in records if r["type"] == "resume"] == [stopped_at]
     assert load_card(tmp_path / "r" / "last")["finished"]
+
+
+def test_lookahead_teacher_writes_episodes_in_the_dataset_layout(tmp_path: Path) -> None:
+    from training.data import load_replay
+    from training.lookahead_collect import main as collect_main
+
+    out = tmp_path / "t.zarr"
+    assert collect_main(["--episodes", "3", "--num-envs", "3", "--candidates", "4", "--seed", "3000000", "--out", str(out)]) == 0
+    replay = load_replay(out)
+    assert len(replay.episode_ends) == 3 and replay.states.shape[1] == 5 and replay.actions.shape[1] == 2
+    # each episode starts at the reset state of one of the seeds (in the order they finished)
+    firsts = replay.states[np.concatenate([[0], replay.episode_ends[:-1]])]
+    resets = np.stack([PushTEnv(render_mode=None).reset(seed=s)[0] for s in range(3_000_000, 3_000_003)]).astype(np.float32)
+    assert sorted(map(tuple, firsts.round(3))) == sorted(map(tuple, resets.round(3)))
+    with pytest.raises(SystemExit):
+        collect_main(["--episodes", "3", "--seed", "199999", "--out", str(out)])  # overlaps the held-out seeds

@@ -1,0 +1,123 @@
+"""Collect episodes from a lookahead teacher: at each decision the flow's best of K chunks, each simulated one chunk ahead.
+
+    python -m training.lookahead_collect --model models/flow --episodes 500 --seed 3000000 --out data/rollouts/lookahead-16.zarr
+
+The teacher is the oracle of ../shared/notes/policy-quality.md (16 candidates lift success from 60 % to
+82 %): it simulates, so it exists at training time only. Its episodes (all of them, or only the
+successful ones with --successful-only) are written in the demonstrations' zarr layout, for
+`training.train --extra-data` to distil the teacher's finishes into a policy that acts from its
+inputs alone. Seeds must avoid every evaluation and held-out range.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pusht.env import MAX_EPISODE_STEPS, SUCCESS_THRESHOLD, PushTEnv
+from training.chunk_env import _restore, _snapshot
+from training.config import HelpFormatter
+from training.data import Replay, save_replay
+
+RESERVED_SEEDS = range(100_000, 1_000_000)  # periodic, tuning, held-out and unused-score ranges
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point: collect, write the zarr, print one JSON line."""
+    parser = argparse.ArgumentParser(prog="python -m training.lookahead_collect", description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
+    parser.add_argument("--model", default="models/flow", help="flow checkpoint stem")
+    parser.add_argument("--episodes", type=int, default=500, help="episodes to play")
+    parser.add_argument("--seed", type=int, default=3_000_000, help="first episode seed (outside 100000..999999)")
+    parser.add_argument("--candidates", type=int, default=16, help="chunks simulated per decision")
+    parser.add_argument("--num-envs", type=int, default=32, help="episodes played side by side")
+    parser.add_argument("--successful-only", action="store_true", help="write only the episodes that succeeded")
+    parser.add_argument("--out", required=True, help="output zarr store (replaced if it exists)")
+    args = parser.parse_args(argv)
+    if args.seed < RESERVED_SEEDS.stop and args.seed + args.episodes > RESERVED_SEEDS.start:
+        parser.error(f"seeds {args.seed}..{args.seed + args.episodes - 1} overlap the evaluation ranges 100000..999999")
+    torch.set_num_threads(1)
+    report = collect(args.model, args.episodes, args.seed, args.candidates, args.num_envs, Path(args.out), args.successful_only)
+    print(json.dumps(report))
+    return 0
+
+
+def collect(model: str, episodes: int, seed: int, candidates: int, num_envs: int, out: Path, successful_only: bool) -> dict:
+    """Play the lookahead teacher on seeds seed..seed+episodes-1 and write its episodes to `out`; returns the report."""
+    from tqdm import tqdm
+
+    from training.checkpoint import load_acting_policy
+
+    acting = load_acting_policy(model)
+    acting.eval()
+    generator = torch.Generator().manual_seed(seed)
+    scratch = PushTEnv(render_mode=None)
+    scratch.reset(seed=0)
+    kept, results, next_seed = [], [], seed
+    envs: list[dict] = []
+    bar = tqdm(total=episodes, desc="episodes", file=sys.stderr)
+    while len(results) < episodes:
+        while len(envs) < num_envs and next_seed < seed + episodes:
+            env = PushTEnv(render_mode=None)
+            obs, _ = env.reset(seed=next_seed)
+            envs.append({"env": env, "seed": next_seed, "obs": obs, "states": [], "actions": [], "max": 0.0, "steps": 0})
+            next_seed += 1
+        states = torch.as_tensor(np.stack([e["obs"] for e in envs]), dtype=torch.float32)
+        noise = torch.randn((len(envs) * candidates, acting.policy.horizon, acting.policy.action_dim), generator=generator)
+        with torch.no_grad():
+            chunks = acting(states.repeat_interleave(candidates, dim=0), noise).numpy().reshape(len(envs), candidates, -1, 2)
+        for e, options in zip(envs, chunks):
+            chunk = options[_best(scratch, e, options)]
+            for action in chunk:
+                e["states"].append(e["obs"].astype(np.float32))
+                e["actions"].append(action)
+                e["obs"], reward, terminated, _, info = e["env"].step(action)
+                e["steps"] += 1
+                e["max"] = max(e["max"], reward)
+                if terminated or e["steps"] >= MAX_EPISODE_STEPS:
+                    e["done"], e["success"] = True, info["coverage"] > SUCCESS_THRESHOLD
+                    break
+        for e in [e for e in envs if e.get("done")]:
+            results.append((e["max"], e["success"]))
+            if e["success"] or not successful_only:
+                kept.append(e)
+            envs.remove(e)
+            bar.update(1)
+    bar.close()
+    replay = Replay(states=np.concatenate([np.stack(e["states"]) for e in kept]), actions=np.concatenate([np.stack(e["actions"]) for e in kept]),
+                    episode_ends=np.cumsum([len(e["states"]) for e in kept]).astype(np.int64))
+    attrs = {"source": f"lookahead teacher: best of {candidates} chunks of {model}, each simulated one chunk ahead (python -m training.lookahead_collect)",
+             "seeds": [seed, seed + episodes - 1], "kept_seeds": [e["seed"] for e in kept]}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_replay(out, replay, attrs)
+    rewards = np.array([r for r, _ in results])
+    return {"out": str(out), "episodes": len(results), "kept_episodes": len(kept), "kept_frames": int(replay.episode_ends[-1]),
+            "teacher_mean_max_reward": round(float(rewards.mean()), 4), "teacher_success_rate": round(float(np.mean([s for _, s in results])), 4)}
+
+
+def _best(scratch: PushTEnv, episode: dict, options: np.ndarray) -> int:
+    """The option whose chunk, simulated from the episode's present state, ends with the highest reward (success first)."""
+    snapshot = _snapshot(episode["env"])
+    scores = []
+    for chunk in options:
+        _restore(scratch, snapshot)
+        best, steps = 0.0, episode["steps"]
+        for action in chunk:
+            _, reward, terminated, _, _ = scratch.step(action)
+            steps += 1
+            best = reward
+            if terminated:
+                best = 2.0  # success ends the episode: nothing beats it
+                break
+            if steps >= MAX_EPISODE_STEPS:
+                break
+        scores.append(best)
+    return int(np.argmax(scores))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
