@@ -25,6 +25,8 @@ from service.backends import ModelLoadError, load_policies
 from service.batching import Batcher, evaluations
 from service.guard import HeaderLimit, QuietStartupFailure, Refusal
 from service.metrics import Metrics, MetricsMiddleware
+from service.oip import make_oip_router
+from service.openpi_ws import make_openpi_router
 from service.routes import DOCS_ASSETS, docs_assets_dir, make_router
 from service.settings import Settings, SettingsError, get_settings
 from service.state import ServiceState
@@ -96,6 +98,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.service = ServiceState(settings=settings, metrics=metrics)
     handler = ActHandler(settings)
     app.include_router(make_router(settings, handler))
+    app.include_router(make_oip_router(settings))  # KServe Open Inference Protocol v2 under /v2 (service.oip)
+    app.include_router(make_openpi_router(settings))  # openpi-compatible websocket /openpi/{policy} (service.openpi_ws)
     app.mount(DOCS_ASSETS, StaticFiles(directory=docs_assets_dir()), name="docs-assets")
     _document_policy_names(app)
 
