@@ -30,6 +30,7 @@ from service.openpi_ws import make_openpi_router
 from service.routes import DOCS_ASSETS, docs_assets_dir, make_router
 from service.settings import Settings, SettingsError, get_settings
 from service.state import ServiceState
+from service.viewer import VIEWER_ASSETS, make_viewer_router, viewer_assets_dir
 
 __all__ = ["app", "create_app"]
 
@@ -37,7 +38,7 @@ __all__ = ["app", "create_app"]
 log = logging.getLogger("uvicorn.error")
 
 NEVER_SHED_CONNECTIONS = 32
-ROUTES = frozenset({"/act", "/policies", "/healthz", "/readyz", "/metrics", "/docs", "/openapi.json"})
+ROUTES = frozenset({"/act", "/policies", "/healthz", "/readyz", "/metrics", "/docs", "/openapi.json", "/viewer"})
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -101,6 +102,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(make_oip_router(settings))  # KServe Open Inference Protocol v2 under /v2 (service.oip)
     app.include_router(make_openpi_router(settings))  # openpi-compatible websocket /openpi/{policy} (service.openpi_ws)
     app.mount(DOCS_ASSETS, StaticFiles(directory=docs_assets_dir()), name="docs-assets")
+    app.include_router(make_viewer_router(settings))  # GET /viewer and its websocket (service.viewer)
+    app.mount(VIEWER_ASSETS, StaticFiles(directory=viewer_assets_dir()), name="viewer-assets")
     _document_policy_names(app)
 
     @app.exception_handler(ServiceError)

@@ -69,6 +69,9 @@ class Settings(BaseSettings):
     )
     ort_intra_op_threads: int = Field(1, ge=0, description="ONNX Runtime intra-op threads per session (0: ORT default)")
     torch_threads: int = Field(1, ge=0, description="torch intra-op threads for the torch backend (0: torch default)")
+    viewer_max_sessions: int = Field(4, ge=0, le=64, description="most live /viewer websocket sessions at once (0: viewer off); more get 503")
+    viewer_idle_s: float = Field(300.0, gt=0, le=3600, description="a /viewer session with no message from its page and no episode playing closes after this long")
+    viewer_data_dir: Path | None = Field(None, description="folder where /viewer saves episodes as zarr stores (unset: saving is off)")
 
     @field_validator("api_key")
     @classmethod
