@@ -32,6 +32,8 @@ class TrainConfig:
     out_dir: str = _f("runs", "parent folder of run folders")
     data: str = _f("data/pusht_lowdim.zarr", "replay zarr with data/state, data/action, meta/episode_ends")
     extra_data: str = _f("", "comma-separated zarr stores (same layout, e.g. from training.collect) whose windows join the demonstrations'; normalization stays the demonstrations'")
+    human_weight: float = _f(1.0, "sampling weight of extra-data windows whose first action a human gave (data/human, as /viewer saves); demonstrations weigh 1")
+    policy_step_weight: float = _f(1.0, "sampling weight of the other windows of stores with data/human, the policy's own steps (0: learn only the human's)")
     init: str = _f("", "checkpoint stem to start from (fine-tuning): its weights, architecture and normalization are used, --arch and --dropout are ignored")
     steps: int = _f(200_000, "optimizer steps (global batches)")
     batch_size: int = _f(128, "global batch size (split across DDP ranks)")
@@ -69,6 +71,8 @@ class TrainConfig:
             (self.steps >= 1, f"steps must be >= 1, got {self.steps}"),
             (self.batch_size >= 1, f"batch_size must be >= 1, got {self.batch_size}"),
             (self.lr > 0, f"lr must be > 0, got {self.lr}"),
+            (0 <= self.human_weight <= 1000, f"human_weight must be in [0, 1000], got {self.human_weight}"),
+            (0 <= self.policy_step_weight <= 1000, f"policy_step_weight must be in [0, 1000], got {self.policy_step_weight}"),
             (self.weight_decay >= 0, f"weight_decay must be >= 0, got {self.weight_decay}"),
             (0 <= self.dropout < 1, f"dropout must be in [0, 1), got {self.dropout}"),
             (self.horizon >= 1, f"horizon must be >= 1, got {self.horizon}"),
@@ -102,8 +106,8 @@ class TrainConfig:
         return value
 
     def to_dict(self) -> dict[str, Any]:
-        """A JSON-ready dict of every field."""
-        return asdict(self)
+        """A JSON-ready dict of every field; the weights only when not 1, so configs saved before they existed match (--resume)."""
+        return {k: v for k, v in asdict(self).items() if not (k in ("human_weight", "policy_step_weight") and v == 1.0)}
 
 
 class HelpFormatter(argparse.HelpFormatter):

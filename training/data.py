@@ -107,14 +107,29 @@ def make_windows(replay: Replay, horizon: int = HORIZON, pad_end: bool = False) 
     With `pad_end`, every frame starts a window, and chunks that would run past their episode's end
     repeat its last action (as Diffusion Policy's sampler pads), so the final frames are learned too.
     """
+    starts = window_frames(replay, horizon, pad_end)
     if pad_end:
-        starts = np.arange(len(replay.states), dtype=np.int64)
         last = np.repeat(replay.episode_ends - 1, np.diff(np.concatenate([[0], replay.episode_ends])))
         chunk_index = np.minimum(starts[:, None] + np.arange(horizon)[None, :], last[:, None])
     else:
-        starts = window_starts(replay.episode_ends, horizon)
         chunk_index = starts[:, None] + np.arange(horizon)[None, :]
     return replay.states[starts].copy(), replay.actions[chunk_index]
+
+
+def window_frames(replay: Replay, horizon: int = HORIZON, pad_end: bool = False) -> np.ndarray:
+    """The frame each of `make_windows`' windows starts at (every frame with `pad_end`)."""
+    return np.arange(len(replay.states), dtype=np.int64) if pad_end else window_starts(replay.episode_ends, horizon)
+
+
+def human_labels(path: str | Path, frames: int) -> np.ndarray | None:
+    """A store's data/human as bools (True: a human gave that frame's action, as /viewer records), or None without it."""
+    root = zarr.open_group(str(path), mode="r")
+    if "data/human" not in root:
+        return None
+    labels = _read_array(root, Path(path), "data/human").reshape(-1)
+    if len(labels) != frames:
+        raise DatasetError(f"{path}: data/human has {len(labels)} frames but data/state has {frames}")
+    return labels.astype(bool)
 
 
 def training_windows(replay: Replay, horizon: int, action_frame: str, pad_end: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -133,28 +148,46 @@ class TrainingSet:
     chunks: torch.Tensor  # [W, H, 2]
     normalizer: Normalizer
     demo_windows: int  # the first demo_windows rows come from the demonstrations, the rest from extra data
+    weights: torch.Tensor | None = None  # sampling weight per window; None: all equal (plain permutations)
 
     def __len__(self) -> int:
         return len(self.states)
 
+    def epoch_order(self, count: int, generator: torch.Generator) -> torch.Tensor:
+        """`count` window indices for an epoch: a permutation, or with weights a draw with replacement in proportion to them."""
+        if self.weights is None:
+            return torch.randperm(len(self.states), generator=generator)[:count]
+        return torch.multinomial(self.weights, count, replacement=True, generator=generator)
+
 
 def training_set(data: str | Path, horizon: int = HORIZON, action_frame: str = "absolute", pad_end: bool = False,
-                 extra_data: tuple[str | Path, ...] = (), normalizer: Normalizer | None = None) -> TrainingSet:
-    """The demonstrations' windows plus those of `extra_data`, normalized by `normalizer` or by statistics of the demonstrations alone."""
+                 extra_data: tuple[str | Path, ...] = (), normalizer: Normalizer | None = None,
+                 human_weight: float = 1.0, policy_step_weight: float = 1.0) -> TrainingSet:
+    """The demonstrations' windows plus those of `extra_data`, normalized by `normalizer` or by statistics of the demonstrations alone.
+
+    Extra windows whose first action a human gave (data/human) weigh `human_weight`, the others of such stores `policy_step_weight`."""
     replay = load_replay(data)
     states, chunks = training_windows(replay, horizon, action_frame, pad_end)
     if normalizer is None:
         # agent-frame chunks have their own statistics; absolute ones share the per-frame actions'
         normalizer = Normalizer.fit(replay.states, chunks if action_frame == "agent" else replay.actions)
     demo_windows = len(states)
+    weights = [np.ones(demo_windows)]
     for extra in extra_data:
-        extra_states, extra_chunks = training_windows(load_replay(extra), horizon, action_frame, pad_end)
+        extra_replay = load_replay(extra)
+        extra_states, extra_chunks = training_windows(extra_replay, horizon, action_frame, pad_end)
         states, chunks = np.concatenate([states, extra_states]), np.concatenate([chunks, extra_chunks])
+        labels = human_labels(extra, len(extra_replay.states))
+        starts_human = labels[window_frames(extra_replay, horizon, pad_end)] if labels is not None else None
+        weights.append(np.ones(len(extra_states)) if starts_human is None else np.where(starts_human, human_weight, policy_step_weight))
+    weights = np.concatenate(weights)
     return TrainingSet(
         states=torch.as_tensor(np.asarray(normalizer.normalize_state(states), dtype=np.float32)),
         chunks=torch.as_tensor(np.asarray(normalizer.normalize_action(chunks), dtype=np.float32)),
         normalizer=normalizer,
         demo_windows=demo_windows,
+        # all ones samples exactly as before the weights existed (plain permutations, same draws)
+        weights=None if np.all(weights == 1.0) else torch.as_tensor(weights, dtype=torch.float64),
     )
 
 

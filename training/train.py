@@ -114,7 +114,7 @@ def train(cfg: TrainConfig) -> Run:
         step = first_step - 1
         for step in range(first_step, cfg.steps + 1):
             if batch_in_epoch == batches_per_epoch:
-                order = torch.randperm(len(data), generator=permutation_rng)[: batches_per_epoch * cfg.batch_size]
+                order = data.epoch_order(batches_per_epoch * cfg.batch_size, permutation_rng)
                 batch_in_epoch = 0
             # each global batch is split in rank-sized slices: rank r takes slice r
             idx = order.view(batches_per_epoch, cfg.batch_size)[batch_in_epoch, ctx.rank * local_batch : (ctx.rank + 1) * local_batch]
@@ -219,7 +219,8 @@ def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
     else:
         policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, **cfg.architecture_overrides()})
     extra = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
-    data = training_set(cfg.data, cfg.horizon, policy.action_frame, cfg.pad_episode_end, extra, base_normalizer)
+    data = training_set(cfg.data, cfg.horizon, policy.action_frame, cfg.pad_episode_end, extra, base_normalizer,
+                        human_weight=cfg.human_weight, policy_step_weight=cfg.policy_step_weight)
     if len(data) < cfg.batch_size:
         raise ValueError(f"{cfg.data} has {len(data)} windows, fewer than batch_size {cfg.batch_size}")
     return policy, data
