@@ -5,7 +5,7 @@
 
 Per server (`uvicorn service.app:app` on 127.0.0.1, one at a time, alternated over --rounds):
 (1) --bulk-clients keep-alive connections stream --bulk-rows-row flow requests for --duration s:
-bulk rows/s; (2) the same plus one connection sending 1-row requests back to back: their p50/p99
+bulk rows/s and server CPU per 1,000 rows; (2) the same plus one connection sending 1-row requests back to back: their p50/p99
 and the bulk rows/s beside them; (3) --abandoned requests of 1,024 rows whose clients close right
 after sending, then a 1-row probe: its latency. The reference revision (service/ and pusht/ from
 `git archive`) is the baseline measured in the same run.
@@ -29,7 +29,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from bench.service_latency import _connection, _payloads, _wait_ready, checkout_rev  # noqa: E402
+from bench.service_latency import _connection, _cpu_seconds, _payloads, _wait_ready, checkout_rev  # noqa: E402
 
 
 def _request(body: dict) -> bytes:
@@ -99,7 +99,10 @@ def _bench(name: str, cwd: Path, models_dir: Path, args: argparse.Namespace) -> 
         _wait_ready(port, proc, log)
         asyncio.run(_connection(port, _bulk_payloads(args.bulk_rows, 2), 0, 5, None, [0], None))  # warm-up
         figures = {"name": name}
+        cpu0 = _cpu_seconds(proc.pid)
         figures.update({f"alone_{k}": v for k, v in asyncio.run(_bulk_and_probe(port, args, probe=False)).items()})
+        # server CPU per 1,000 bulk rows: the throughput figure least moved by what else runs
+        figures["alone_cpu_s_per_krow"] = (_cpu_seconds(proc.pid) - cpu0) / (figures["alone_bulk_rows_per_s"] * args.duration / 1000)
         figures.update(asyncio.run(_bulk_and_probe(port, args, probe=True)))
         time.sleep(1.0)
         figures["abandoned_probe_ms"] = asyncio.run(_abandoned(port, args.abandoned))
@@ -139,15 +142,17 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\ncpu cores: {os.cpu_count()}; load generator, servers and anything else running share them")
     print(f"{args.bulk_clients} clients streaming {args.bulk_rows}-row flow requests for {args.duration:g} s; "
           f"medians of {args.rounds} round(s)\n")
-    keys = ["alone_bulk_rows_per_s", "bulk_rows_per_s", "probe_p50_ms", "probe_p99_ms", "probe_max_ms", "abandoned_probe_ms"]
+    keys = ["alone_bulk_rows_per_s", "alone_cpu_s_per_krow", "bulk_rows_per_s", "probe_p50_ms", "probe_p99_ms", "probe_max_ms",
+            "abandoned_probe_ms"]
     print(f"{'server':<10}" + "".join(f"{k:>22}" for k in keys))
     medians = {}
     for name, figs in runs.items():
         medians[name] = {k: float(np.median([f[k] for f in figs])) for k in keys}
-        print(f"{name:<10}" + "".join(f"{medians[name][k]:22.1f}" for k in keys))
+        print(f"{name:<10}" + "".join(f"{medians[name][k]:22.3f}" for k in keys))
     if "reference" in medians:
         ours, ref = medians["service"], medians["reference"]
-        print(f"\nbulk rows/s ours/reference: alone {ours['alone_bulk_rows_per_s'] / ref['alone_bulk_rows_per_s']:.3f}x, "
+        print(f"\nserver cpu per bulk row ours/reference: {ours['alone_cpu_s_per_krow'] / ref['alone_cpu_s_per_krow']:.3f}x; "
+              f"bulk rows/s ours/reference: alone {ours['alone_bulk_rows_per_s'] / ref['alone_bulk_rows_per_s']:.3f}x, "
               f"beside probes {ours['bulk_rows_per_s'] / ref['bulk_rows_per_s']:.3f}x (target >= 0.9); "
               f"1-row p99 {ours['probe_p99_ms']:.1f} ms vs {ref['probe_p99_ms']:.1f} ms (target <= 30 ms)")
     errors = sum(f["errors"] + f["alone_errors"] for figs in runs.values() for f in figs)

@@ -5,12 +5,13 @@ from the queue: at most `max_cost` cost units (rows x network evaluations: a flo
 num_steps, an mse row 1) and `max_rows` rows, only rows with the oldest request's `num_steps`. The
 call's rows are shared max-min fairly: requests with few rows left go whole, and bulk requests split
 the rest evenly. When small requests wait beside bulk ones, the next call is short (an eighth of the
-budget), so a 1-row request waits about one call however many 1,024-row batches are queued, while
-bulk rows still fill the calls (a model's cost per row is flat beyond a few dozen rows). Noise is drawn per request (`seed`) or per row (`seeds`) and sliced, and every call is padded to
-a multiple of 4 rows (`pusht.rollout.pad_rows`), so an answer never depends, to the last bit, on
-what else was in the batch. Requests whose client left (their future is done) are
-dropped before their rows reach the model. Compute runs in the worker thread (ONNX Runtime and torch
-release the GIL), off the event loop.
+budget) and the next few half size, so a 1-row request waits about half a call however many
+1,024-row batches are queued, while bulk rows still fill the calls (a model's cost per row is flat
+beyond a few dozen rows). Noise is drawn per request (`seed`) or per row (`seeds`) and sliced, and
+every call is padded to a multiple of 4 rows (`pusht.rollout.pad_rows`), so an answer never
+depends, to the last bit, on what else was in the batch. Requests whose client left (their future
+is done) are dropped before their rows reach the model. Compute runs in the worker thread (ONNX
+Runtime and torch release the GIL), off the event loop.
 """
 
 from __future__ import annotations
@@ -91,6 +92,7 @@ class Batcher:
         self._timer: asyncio.TimerHandle | None = None
         self._last_requests = 0
         self._last_short = False
+        self._calls_since_short = 1 << 30
         self._closed = False
 
     async def submit(
@@ -208,8 +210,12 @@ class Batcher:
             # running; short calls alternate with full ones, so a stream of small requests cannot starve bulk.
             left = short
             self._last_short = True
+            self._calls_since_short = 0
         else:
             self._last_short = False
+            self._calls_since_short += 1
+            if self._calls_since_short <= 8:
+                left = max(short, left // 2)  # while small requests keep coming, halve what they may wait behind
         batch: list[_Slice] = []
         for k, item in enumerate(group):
             if left <= 0:
