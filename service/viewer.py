@@ -99,6 +99,8 @@ def make_viewer_router(settings: Settings) -> APIRouter:
         try:
             if not _same_origin(ws):
                 raise _Refused(403, "the page's origin differs from this service's host", close=True)
+            if settings.viewer_max_sessions == 0:
+                raise _Refused(503, "the viewer is off on this service (PUSHT_VIEWER_MAX_SESSIONS=0)", close=True)
             if sessions["live"] >= settings.viewer_max_sessions:
                 raise _Refused(503, f"{sessions['live']} viewer sessions are open (PUSHT_VIEWER_MAX_SESSIONS="
                                f"{settings.viewer_max_sessions}); close one or retry later", close=True)
