@@ -32,6 +32,8 @@ VIEWER_ASSETS = "/viewer-assets"
 """Where the app serves the page's script."""
 MAX_FPS = 200.0
 MAX_SEED = 2**63 - 1
+MAX_MESSAGE_CHARS = 4096
+"""Longest page message: the largest real one (hello with a key) is far smaller."""
 
 
 class _Hello(BaseModel):
@@ -179,6 +181,8 @@ class _Session:
         return episode is not None and not episode.done and (self.pointer is not None or episode.policy is not None)
 
     async def _handle(self, text: str) -> None:
+        if len(text) > MAX_MESSAGE_CHARS:
+            raise _Refused(413, f"a message of {len(text)} characters exceeds the limit of {MAX_MESSAGE_CHARS}")
         try:
             raw = json.loads(text)
         except ValueError:

@@ -135,6 +135,7 @@ def test_viewer_bad_messages_get_4xx_errors_and_the_session_lives_on(server):
         ws.send(b"\x00binary")
         assert json.loads(ws.recv(timeout=5))["status"] == 400
         assert ask(ws, {"type": "fly"})["status"] == 400
+        assert ask(ws, {"type": "hello", "key": "k" * 10000})["status"] == 413
         assert ask(ws, [1, 2])["status"] == 400
         for bad in ({"seed": -1}, {"seed": 2**63}, {"seed": "3"}, {"fps": 0}, {"fps": 1e6}, {"extra": 1}, {"policy": 5}):
             error = ask(ws, {"type": "start", "policy": "flow", "seed": 1, **bad})
