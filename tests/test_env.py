@@ -229,15 +229,16 @@ def test_physics_snapshot_restores_into_another_env_and_goes_on_alike() -> None:
     env.reset(seed=11)
     other.reset(seed=12)
     rng = np.random.default_rng(0)
-    for _ in range(20):
-        env.step(env.get_state()[2:4] + rng.normal(0, 30, 2))
+    for _ in range(20):  # walk the agent into the block, so the restored state carries contact and velocity
+        env.step(env.get_state()[2:4] + rng.normal(0, 10, 2))
     snapshot = env.physics_snapshot()
     other.restore_physics(snapshot)
     np.testing.assert_array_equal(other.get_state(), env.get_state())
     assert other.elapsed_steps == env.elapsed_steps == 20
-    actions = env.get_state()[2:4] + rng.normal(0, 30, (12, 2))
+    actions = env.get_state()[2:4] + rng.normal(0, 10, (12, 2))
     for action in actions:
         a, ra, *_ = env.step(action)
         b, rb, *_ = other.step(action)
-    # no contact cache in the snapshot: close, not bit for bit
+    # no contact cache in the snapshot: close, not bit for bit (chaotic pushes, e.g. into a wall, can drift more)
     assert np.abs(a - b).max() < 1.0 and abs(ra - rb) < 1e-2
+    assert np.abs(a[2:4] - snapshot[2]).max() > 1.0  # the block was pushed: the comparison covers contact
