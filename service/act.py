@@ -106,7 +106,9 @@ class ActHandler:
         policy = batcher.policy
         num_steps = req.num_steps
         if policy.kind != "flow":
-            num_steps = None  # mse has no integration steps, just as it has no noise
+            if num_steps is not None:
+                raise ServiceError(422, [{"loc": ["num_steps"], "type": "value_error",
+                                          "msg": f"policy {req.policy!r} is an {policy.kind} policy: one network pass, no sampler steps; omit num_steps"}])
         elif num_steps is not None:
             problem = policy.check_num_steps(num_steps)
             if problem is not None:

@@ -208,7 +208,11 @@ class TorchPolicy:
         _smoke_test(self, weights)
 
     def check_num_steps(self, num_steps: int) -> str | None:
-        """Torch integrates any step count."""
+        """Torch integrates any step count, except for a distilled flow, trained for its own count only."""
+        trained = self.card.get("sampler_steps")
+        if trained is not None and num_steps != trained:
+            return (f"num_steps={num_steps} is not available: policy {self.name!r} was distilled to sample in {trained} "
+                    f"step{'s' if trained != 1 else ''}, and other counts do not give its actions")
         return None
 
     def act(self, states: np.ndarray, noise: np.ndarray | None, num_steps: int | None) -> np.ndarray:

@@ -94,6 +94,7 @@ def make_router(settings: Settings, handler: "ActHandler | None" = None) -> APIR
                     kind=policy.kind,
                     num_parameters=card.get("num_parameters"),
                     num_steps=policy.default_num_steps if policy.kind == "flow" else None,
+                    network_evaluations=policy.default_num_steps if policy.kind == "flow" else 1,
                     steps=card.get("steps"),
                     evaluation=card.get("evaluation"),
                     heldout_evaluation=card.get("heldout_evaluation"),

@@ -63,7 +63,8 @@ class ActRequestBase(BaseModel):
     )
     num_steps: StrictInt | None = Field(
         None, ge=1, le=MAX_NUM_STEPS,
-        description="flow Euler steps (default: the exported count; the onnx backend runs only that count; ignored by mse)",
+        description=("flow Euler steps (default: the exported count; the onnx backend runs only that count, a distilled flow only "
+                     "its own); a 422 for mse, which has none"),
     )
 
     @model_validator(mode="after")
@@ -127,6 +128,7 @@ class PolicyInfo(BaseModel):
     kind: str
     num_parameters: int | None = None
     num_steps: int | None = Field(None, description="flow Euler steps of the exported graph")
+    network_evaluations: int = Field(description="network passes per chunk at the default settings: flow's Euler steps, mse's 1")
     steps: int | None = Field(None, description="training steps")
     evaluation: Any = Field(None, description="the card's evaluation results during training, with their seeds")
     heldout_evaluation: Any = Field(None, description="the card's scores on held-out episode seeds, when shipped")

@@ -204,3 +204,15 @@ def test_openapi_schema_fuzzing(server: UvicornProcess) -> None:
     # the fuzzer reached both the model (200) and the validation (422) paths
     assert {200, 422} <= act_statuses, act_statuses
     assert httpx.get(f"{server.url}/readyz").status_code == 200
+
+
+def test_num_steps_where_the_sampler_has_none_gets_a_422_and_policies_say_the_cost(server) -> None:
+    """mse has no sampler steps: num_steps is refused, not silently ignored; /policies says each chunk's network passes."""
+    import httpx
+
+    with httpx.Client(base_url=server.url, timeout=30) as client:
+        resp = client.post("/act", json={"policy": "mse", "state": [222.0, 97.0, 222.0, 222.0, 0.8], "num_steps": 3})
+        assert resp.status_code == 422 and "no sampler steps" in resp.text
+        policies = {p["name"]: p for p in client.get("/policies").json()["policies"]}
+    assert policies["mse"]["network_evaluations"] == 1
+    assert policies["flow"]["network_evaluations"] == policies["flow"]["num_steps"] == 10
