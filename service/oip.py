@@ -222,11 +222,14 @@ class OipInfer:
         if num_steps is not None:
             if type(num_steps) is not int:
                 raise invalid(["parameters", "num_steps"], "must be an integer")
-            problem = policy.check_num_steps(num_steps) if policy.kind == "flow" else None
+            if policy.kind != "flow":  # as on /act
+                raise invalid(["parameters", "num_steps"], f"policy {policy.name!r} is an {policy.kind} policy: one network pass, "
+                              "no sampler steps; omit num_steps")
+            problem = policy.check_num_steps(num_steps)
             if problem is not None:
                 raise invalid(["parameters", "num_steps"], problem)
         if policy.kind != "flow":
-            seed = num_steps = None  # mse draws no noise and has no steps, as on /act
+            seed = None  # mse draws no noise, as on /act
         for k, out in enumerate(req.outputs or []):
             if out.name != "actions" or set(out.parameters) - {"binary_data"} or type(out.parameters.get("binary_data", binary)) is not bool:
                 raise invalid(["outputs", k], "the one output is `actions`, with the one parameter binary_data (true or false)")

@@ -186,7 +186,9 @@ async def _act(batcher: Batcher, message: dict[str, Any], max_bytes: int) -> dic
     seed = _integer(obs, "seed", 0, MAX_SEED)
     num_steps = _integer(obs, "num_steps", 1, 10**6)
     if policy.kind != "flow":
-        seed = num_steps = None  # mse draws no noise and has no steps, as on /act
+        if num_steps is not None:  # as on /act
+            raise BadMessage(422, f"policy {policy.name!r} is an {policy.kind} policy: one network pass, no sampler steps; omit num_steps")
+        seed = None  # mse draws no noise, as on /act
     elif num_steps is not None and (problem := policy.check_num_steps(num_steps)) is not None:
         raise BadMessage(422, problem)
     try:

@@ -163,6 +163,7 @@ BAD = [
                                     "parameters": {"seed": 1}}, 422, "at most one"),
     ("unknown parameter", "flow", {}, {"inputs": [_state()], "parameters": {"priority": 1}}, 422, "unknown parameters ['priority']"),
     ("num_steps", "flow", {}, {"inputs": [_state()], "parameters": {"num_steps": 3}}, 422, "not available on the onnx backend"),
+    ("num_steps for mse", "mse", {}, {"inputs": [_state()], "parameters": {"num_steps": 10}}, 422, "no sampler steps"),
     ("unknown output", "flow", {}, {"inputs": [_state()], "outputs": [{"name": "values"}]}, 422, "the one output is `actions`"),
     ("data and binary", "flow", {}, {"inputs": [_state(parameters={"binary_data_size": 20})]}, 422, "either as `data`"),
     ("binary too short", "flow", {"Inference-Header-Content-Length": "HEAD"}, (BINARY_STATE, b"\0" * 12), 422, "must be 20 bytes"),

@@ -108,6 +108,7 @@ def test_bad_messages_get_errors_and_the_connection_stays(server: UvicornProcess
         (pack({"state": np.zeros(5, np.float32), "image": 1}), 422, "unknown keys"),
         (pack({"state": np.zeros(5, np.float32), "seed": -1}), 422, "'seed' must be an integer"),
         (pack({"state": np.zeros(5, np.float32), "seed": True}), 422, "'seed' must be an integer"),
+        (pack({"state": np.zeros(5, np.float32), "num_steps": 10}), 422, "no sampler steps"),
         (pack({"state": {b"__ndarray__": True, b"data": b"x", b"dtype": "|O", b"shape": [1]}}), 422, "must be numeric"),
         (pack({"state": {b"__ndarray__": True, b"data": b"xx", b"dtype": "<f4", b"shape": [5]}}), 400, "not valid"),
     ]
