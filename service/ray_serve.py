@@ -87,7 +87,8 @@ def main(argv: list[str] | None = None) -> int:
     if address:
         ray.init(address=address, runtime_env={"env_vars": env}, log_to_driver=False)
     else:
-        ray.init(num_cpus=args.local_cpus or os.cpu_count(), object_store_memory=args.object_store_mb << 20,
+        # address="local": a new cluster, even where `ray start` left a record of an older one.
+        ray.init(address="local", num_cpus=args.local_cpus or os.cpu_count(), object_store_memory=args.object_store_mb << 20,
                  include_dashboard=False, runtime_env={"env_vars": env}, log_to_driver=False)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
