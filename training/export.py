@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, update_card
+from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, load_card, update_card
 from training.policies import ActingPolicy
 
 OPSET = 18
@@ -42,7 +42,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--names", nargs="+", default=["mse", "flow"], help="checkpoint names inside --models-dir")
     parser.add_argument("--checkpoint", default=None, help="export this one checkpoint stem (DIR/NAME) instead; needs --out")
     parser.add_argument("--out", default=None, help="output .onnx path for --checkpoint (default: STEM.onnx; the card records it only if beside the card)")
-    parser.add_argument("--num-steps", type=int, default=NUM_STEPS, help="flow: Euler steps unrolled into the graph")
+    parser.add_argument("--num-steps", type=int, default=None, help=f"flow: Euler steps unrolled into the graph (default: a distilled flow's own count, else {NUM_STEPS})")
+    parser.add_argument("--triton-repo", default=None, help="write each export as a Triton model repository entry DIR/NAME/1/model.onnx with its config.pbtxt instead")
     parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
     args = parser.parse_args(argv)
 
@@ -52,10 +53,19 @@ def main(argv: list[str] | None = None) -> int:
         if args.out is not None:
             parser.error("--out needs --checkpoint")
         jobs = [(Path(args.models_dir) / name, Path(args.models_dir) / f"{name}.onnx") for name in args.names]
+    if args.triton_repo is not None:
+        if args.out is not None:
+            parser.error("--out and --triton-repo exclude each other")
+        jobs = [(stem, Path(args.triton_repo) / stem.name / "1" / "model.onnx") for stem, _ in jobs]
     status = 0
     for stem, out in jobs:
         try:
-            info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset)
+            steps = args.num_steps or default_num_steps(stem)
+            info = export_onnx(stem, out, num_steps=steps, opset=args.opset)
+            if args.triton_repo is not None:
+                from training.triton_repo import write_config
+
+                print(f"{write_config(out.parent.parent, load_card(stem))}: Triton config (onnxruntime backend, dynamic batching)")
         except (CheckpointError, ValueError, OSError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             status = 2
@@ -63,6 +73,11 @@ def main(argv: list[str] | None = None) -> int:
         note = "card updated" if info["card_updated"] else "not beside the card: card left unchanged"
         print(f"{stem} -> {out} (inputs {info['inputs']}, outputs {info['outputs']}, opset {info['opset']}, max diff {info['max_abs_diff']:.2e} px; {note})")
     return status
+
+
+def default_num_steps(stem: str | Path) -> int:
+    """The Euler steps to unroll for a checkpoint: a distilled flow's own count (`sampler_steps`), else NUM_STEPS."""
+    return int(load_card(checkpoint_stem(stem)).get("sampler_steps") or NUM_STEPS)
 
 
 def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int = NUM_STEPS, opset: int = OPSET) -> dict[str, Any]:
