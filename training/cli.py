@@ -11,7 +11,17 @@ import shlex
 from dataclasses import MISSING, field, fields
 from typing import Any
 
-__all__ = ["build_parser", "command_line", "option"]
+__all__ = ["HelpFormatter", "build_parser", "command_line", "option"]
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Shows a flag's default once: not for required flags, empty defaults, or helps that already state it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "(default" in text or action.required or not action.option_strings or action.default in (None, "", argparse.SUPPRESS):
+            return text
+        return text + " (default: %(default)s)"
 
 
 def option(default: Any, doc: str, **extra: Any) -> Any:
@@ -21,7 +31,7 @@ def option(default: Any, doc: str, **extra: Any) -> Any:
 
 def build_parser(cls: type, prog: str, description: str) -> argparse.ArgumentParser:
     """An argparse parser with one `--flag` per field of the dataclass `cls`; defaults shown once."""
-    parser = argparse.ArgumentParser(prog=prog, description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = argparse.ArgumentParser(prog=prog, description=description, formatter_class=HelpFormatter)
     for f in fields(cls):
         meta = f.metadata
         kwargs: dict[str, Any] = {"help": meta.get("help", ""), "dest": f.name}
@@ -40,11 +50,12 @@ def build_parser(cls: type, prog: str, description: str) -> argparse.ArgumentPar
     return parser
 
 
-def command_line(cls: type, prog: str, config: dict[str, Any], always: tuple[str, ...] = ("name",)) -> str:
-    """The `prog` command that reproduces `config`: the flags whose values differ from the defaults (and `always`)."""
+def command_line(cls: type, prog: str, config: dict[str, Any], always: tuple[str, ...] = ("name",),
+                 skip: tuple[str, ...] = ("progress", "resume", "overwrite")) -> str:
+    """The `prog` command that reproduces `config`: the flags whose values differ from the defaults (and `always`), none of `skip`."""
     parts = [prog]
     for f in fields(cls):
-        if f.name not in config or f.name == "progress":
+        if f.name not in config or f.name in skip:
             continue
         value = config[f.name]
         if value == f.default and f.name not in always:

@@ -9,16 +9,18 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import MISSING, asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from training.cli import HelpFormatter, build_parser as _build_parser, command_line as _command_line, option as _f
+
+__all__ = ["HelpFormatter", "TrainConfig", "build_parser", "command_line", "parse_config"]
+
+PROG = "python -m training.train"
 POLICY_KINDS = ("mse", "flow")
 NOISE_SCHEDULES = ("linear", "cosine", "constant")
 EVAL_ENVS = ("pusht", "gym-pusht")
 
-
-def _f(default: Any, doc: str, **extra: Any) -> Any:
-    return field(default=default, metadata={"help": doc, **extra})
 
 
 @dataclass
@@ -110,59 +112,14 @@ class TrainConfig:
         return {k: v for k, v in asdict(self).items() if not (k in ("human_weight", "policy_step_weight") and v == 1.0)}
 
 
-class HelpFormatter(argparse.HelpFormatter):
-    """Shows a flag's default once: not for required flags, empty defaults, or helps that already state it."""
-
-    def _get_help_string(self, action: argparse.Action) -> str:
-        text = action.help or ""
-        if "(default" in text or action.required or not action.option_strings or action.default in (None, "", argparse.SUPPRESS):
-            return text
-        return text + " (default: %(default)s)"
-
-
 def build_parser() -> argparse.ArgumentParser:
     """An argparse parser with one `--flag` per TrainConfig field, its help from the field doc."""
-    parser = argparse.ArgumentParser(
-        prog="python -m training.train",
-        description="Train an MSE or flow-matching behavioral-cloning policy on Push-T (single process or torchrun DDP).",
-        formatter_class=HelpFormatter,
-    )
-    for f in fields(TrainConfig):
-        flag = "--" + f.name.replace("_", "-")
-        meta = f.metadata
-        kwargs: dict[str, Any] = {"help": meta.get("help", ""), "dest": f.name}
-        if f.type in ("bool", bool):
-            kwargs["action"] = argparse.BooleanOptionalAction
-            kwargs["default"] = f.default
-        else:
-            kwargs["type"] = {"int": int, "float": float, "str": str}[f.type if isinstance(f.type, str) else f.type.__name__]
-            if meta.get("required"):
-                kwargs["required"] = True
-            elif f.default is not MISSING:
-                kwargs["default"] = f.default
-            if "choices" in meta:
-                kwargs["choices"] = meta["choices"]
-        parser.add_argument(flag, **kwargs)
-    return parser
+    return _build_parser(TrainConfig, PROG, "Train an MSE or flow-matching behavioral-cloning policy on Push-T (single process or torchrun DDP).")
 
 
 def command_line(config: dict[str, Any]) -> str:
     """The `python -m training.train` command that reproduces a run's saved config (flags that differ from the defaults)."""
-    import shlex
-
-    parts = ["python -m training.train"]
-    for f in fields(TrainConfig):
-        if f.name not in config or f.name in ("progress", "resume", "overwrite"):
-            continue
-        value, default = config[f.name], f.default
-        if value == default and f.name not in ("policy", "name"):
-            continue
-        flag = "--" + f.name.replace("_", "-")
-        if isinstance(value, bool):
-            parts.append(flag if value else "--no-" + flag[2:])
-        else:
-            parts.append(f"{flag} {shlex.quote(str(value))}")
-    return " ".join(parts)
+    return _command_line(TrainConfig, PROG, config, always=("policy", "name"))
 
 
 def parse_config(argv: list[str] | None = None) -> TrainConfig:

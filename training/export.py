@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, load_card, update_card
+from training.cli import HelpFormatter
 from training.policies import ActingPolicy
 
 OPSET = 18
@@ -36,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m training.export",
         description="Export checkpoints (NAME.safetensors + NAME.json) to ONNX files with normalization and clipping inside the graph.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("--models-dir", default="models", help="folder of the checkpoints; writes MODELS_DIR/NAME.onnx for each --names")
     parser.add_argument("--names", nargs="+", default=["mse", "flow"], help="checkpoint names inside --models-dir")

@@ -102,8 +102,7 @@ class FinetuneConfig:
 
     def command(self) -> str:
         """The command that reproduces this config."""
-        config = {k: v for k, v in self.to_dict().items() if k not in ("resume", "overwrite")}
-        return command_line(FinetuneConfig, PROG, config, always=("init", "name"))
+        return command_line(FinetuneConfig, PROG, self.to_dict(), always=("init", "name"))
 
 
 def parse_config(argv: list[str] | None = None) -> FinetuneConfig:
