@@ -119,27 +119,7 @@ class ActHandler:
             future = batcher.enqueue(states, req.seed, num_steps, req.seeds)
         except Overloaded as exc:
             raise ServiceError(503, str(exc), {"Retry-After": "1"}) from None
-        # Watching the connection while a request waits behind real work lets a hang-up drop its rows
-        # (a task per request costs ~3 % CPU, so not when the queue is short).
-        watcher = asyncio.ensure_future(_drop_when_gone(receive, future, batcher)) if batcher.worth_watching() else None
-        try:
-            actions = await future
-        except ClientGone:
-            raise ServiceError(400, "client disconnected before its actions were computed") from None
-        except asyncio.CancelledError:  # the server gave up on this request (shutdown): drop its rows too
-            future.cancel()
-            batcher.purge()
-            raise
-        except Overloaded as exc:
-            raise ServiceError(503, str(exc), {"Retry-After": "1"}) from None
-        except Exception as exc:  # a backend failure is our bug, but the client still gets JSON
-            log.exception("policy %r failed on %d states", policy.name, len(states))
-            raise ServiceError(500, f"policy {policy.name!r} failed: {type(exc).__name__}: {exc}") from None
-        finally:
-            if watcher is not None:
-                watcher.cancel()
-        if not np.isfinite(actions).all():
-            raise ServiceError(500, f"policy {policy.name!r} produced non-finite actions")
+        actions = await await_actions(future, batcher, receive, len(states))
         payload = {
             "policy": policy.name,
             "kind": policy.kind,
@@ -148,6 +128,33 @@ class ActHandler:
         }
         # orjson writes float32 arrays directly (shortest float32 repr): ~1 us instead of ~25 us for json.
         return orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY)
+
+
+async def await_actions(future: asyncio.Future, batcher: Batcher, receive: Receive, rows: int) -> np.ndarray:
+    """The actions of a queued request, every failure as a ServiceError; the rows are dropped if the client hangs up."""
+    policy = batcher.policy
+    # Watching the connection while a request waits behind real work lets a hang-up drop its rows
+    # (a task per request costs ~3 % CPU, so not when the queue is short).
+    watcher = asyncio.ensure_future(_drop_when_gone(receive, future, batcher)) if batcher.worth_watching() else None
+    try:
+        actions = await future
+    except ClientGone:
+        raise ServiceError(400, "client disconnected before its actions were computed") from None
+    except asyncio.CancelledError:  # the server gave up on this request (shutdown): drop its rows too
+        future.cancel()
+        batcher.purge()
+        raise
+    except Overloaded as exc:
+        raise ServiceError(503, str(exc), {"Retry-After": "1"}) from None
+    except Exception as exc:  # a backend failure is our bug, but the client still gets JSON
+        log.exception("policy %r failed on %d states", policy.name, rows)
+        raise ServiceError(500, f"policy {policy.name!r} failed: {type(exc).__name__}: {exc}") from None
+    finally:
+        if watcher is not None:
+            watcher.cancel()
+    if not np.isfinite(actions).all():
+        raise ServiceError(500, f"policy {policy.name!r} produced non-finite actions")
+    return actions
 
 
 async def _drop_when_gone(receive: Receive, future: asyncio.Future, batcher: Batcher) -> None:

@@ -21,7 +21,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, ValidationError
 
-from service.act import ClientGone, ServiceError, _drop_when_gone, _read_body, cap_errors, check_key, request_headers
+from service.act import ServiceError, _read_body, await_actions, cap_errors, check_key, request_headers
 from service.backends import LoadedPolicy
 from service.batching import Batcher, Overloaded
 from service.oip_tensors import VERSION, InferRequest, answer, input_tensors, invalid, model_metadata, split_body
@@ -187,25 +187,7 @@ class OipInfer:
             future = batcher.enqueue(states, seed, num_steps, None if seeds is None else seeds.tolist(), noise=noise)
         except Overloaded as exc:
             raise ServiceError(503, str(exc), {"Retry-After": "1"}) from None
-        watcher = asyncio.ensure_future(_drop_when_gone(request.receive, future, batcher)) if batcher.worth_watching() else None
-        try:
-            actions = await future
-        except ClientGone:
-            raise ServiceError(400, "client disconnected before its actions were computed") from None
-        except asyncio.CancelledError:
-            future.cancel()
-            batcher.purge()
-            raise
-        except Overloaded as exc:
-            raise ServiceError(503, str(exc), {"Retry-After": "1"}) from None
-        except Exception as exc:  # a backend failure is our bug, but the client still gets JSON
-            log.exception("policy %r failed on %d states", policy.name, len(states))
-            raise ServiceError(500, f"policy {policy.name!r} failed: {type(exc).__name__}: {exc}") from None
-        finally:
-            if watcher is not None:
-                watcher.cancel()
-        if not np.isfinite(actions).all():
-            raise ServiceError(500, f"policy {policy.name!r} produced non-finite actions")
+        actions = await await_actions(future, batcher, request.receive, len(states))
         return answer(name, req.id, np.ascontiguousarray(actions, dtype=np.float32), binary_out)
 
     def _parameters(self, req: InferRequest, policy: LoadedPolicy) -> tuple[int | None, int | None, bool]:
