@@ -12,7 +12,6 @@ Batcher, sharing model calls, key, body and queue limits with `/act`; errors are
 from __future__ import annotations
 
 import asyncio
-import logging
 from typing import Any
 
 import numpy as np
@@ -31,7 +30,6 @@ from service.state import ServiceState
 
 __all__ = ["make_oip_router"]
 
-log = logging.getLogger("uvicorn.error")
 
 # What a web page may send cross-site without a CORS preflight: refused, so a page cannot drive a policy.
 SIMPLE_TYPES = ("text/plain", "application/x-www-form-urlencoded", "multipart/form-data")
