@@ -26,6 +26,7 @@ def test_a_short_distillation_moves_the_student_toward_the_teachers_map(tmp_path
         f"--out-dir {tmp_path} --pairs 3000 --steps 60 --batch-size 64 --lr 0.0003 --eval-episodes 4 --log-every 20"
     losses = [r["loss"] for r in map(json.loads, (run / "log.jsonl").read_text().splitlines()) if r["type"] == "train"]
     assert len(losses) == 3 and losses[-1] < losses[0]  # the 2-step student gets closer to the 10-step teacher
+    assert (run / "learning_curve.png").stat().st_size > 0
 
     # the student acts in its own step count, and its ONNX graph unrolls exactly that many
     teacher, _ = load_checkpoint(REPO / "models" / "flow")

@@ -17,26 +17,13 @@ import numpy as np
 import pytest
 
 from pusht.rollout import chunk_noise
-from tests.service_fixtures import (
-    SHIPPED_MODELS,
-    UvicornProcess,
-    cached_test_models,
-    iter_lines,
-    raw_burst,
-    shipped_models_available,
-)
+from tests.service_fixtures import SHIPPED_MODELS, UvicornProcess, iter_lines, raw_burst, shipped_models_available
 
 STATE = [120.0, 300.0, 256.0, 250.0, 1.0]
 STATES = [[120.0, 300.0, 256.0, 250.0, 1.0], [400.5, 80.25, 200.0, 310.0, 5.5], [256.0, 256.0, 256.0, 256.0, 0.0]]
 
 
 SHIPPED_SKIP = "models/mse and models/flow (.json + .onnx) are not shipped yet: train and export them to run this on them"
-
-
-@pytest.fixture(scope="session")
-def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Random-weight mse and flow policies (cards, safetensors, ONNX)."""
-    return cached_test_models(tmp_path_factory.getbasetemp())
 
 
 def _models_dir(which: str, request: pytest.FixtureRequest) -> Path:

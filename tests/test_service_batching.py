@@ -10,18 +10,10 @@ import asyncio
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from pusht.rollout import chunk_noise
-from tests.service_fixtures import cached_test_models
 
 STATES = [[120.0, 300.0, 256.0, 250.0, 1.0], [400.5, 80.25, 200.0, 310.0, 5.5], [256.0, 256.0, 256.0, 256.0, 0.0]]
-
-
-@pytest.fixture(scope="session")
-def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Random-weight mse and flow policies (cards, safetensors, ONNX)."""
-    return cached_test_models(tmp_path_factory.getbasetemp())
 
 
 def test_batcher_merges_and_keeps_each_request_seed(test_models: Path) -> None:

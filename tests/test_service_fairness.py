@@ -15,15 +15,9 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.service_fixtures import SHIPPED_MODELS, UvicornProcess, cached_test_models, iter_lines, raw_burst, shipped_models_available
+from tests.service_fixtures import SHIPPED_MODELS, UvicornProcess, iter_lines, raw_burst, shipped_models_available
 
 STATE = [120.0, 300.0, 256.0, 250.0, 1.0]
-
-
-@pytest.fixture(scope="session")
-def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Random-weight mse and flow policies (cards, safetensors, ONNX)."""
-    return cached_test_models(tmp_path_factory.getbasetemp())
 
 
 def _shipped() -> Path:

@@ -18,16 +18,10 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.service_fixtures import UvicornProcess, cached_test_models
+from tests.service_fixtures import UvicornProcess
 
 STATE = [120.0, 300.0, 256.0, 250.0, 1.0]
 FAST_TIMEOUTS = {"PUSHT_HEADER_TIMEOUT_S": "1", "PUSHT_KEEP_ALIVE_S": "1", "PUSHT_BODY_TIMEOUT_S": "2", "PUSHT_SHUTDOWN_TIMEOUT_S": "2"}
-
-
-@pytest.fixture(scope="session")
-def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Random-weight mse and flow policies (cards, safetensors, ONNX)."""
-    return cached_test_models(tmp_path_factory.getbasetemp())
 
 
 @pytest.fixture(scope="module", params=["uvicorn", "service"], ids=["plain-uvicorn", "python-m-service"])

@@ -15,29 +15,11 @@ import numpy as np
 import pytest
 
 from pusht.rollout import chunk_noise, row_noise
-from tests.service_fixtures import SHIPPED_MODELS, UvicornProcess, cached_test_models, iter_lines, raw_burst, shipped_models_available
+from tests.service_fixtures import UvicornProcess, iter_lines, raw_burst
 
 rng = np.random.default_rng(3)
 STATES = np.column_stack([rng.uniform(20, 490, (6, 4)), rng.uniform(0, 6.28, 6)]).round(3).tolist()
 SEEDS = [10**18 + 7, 0, 2**63 - 1, 5, 5, 123]
-
-
-@pytest.fixture(scope="session")
-def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Random-weight mse and flow policies (cards, safetensors, ONNX)."""
-    return cached_test_models(tmp_path_factory.getbasetemp())
-
-
-@pytest.fixture(scope="module", params=["test", "shipped"], ids=["test-models", "shipped-models"])
-def server(request: pytest.FixtureRequest):
-    if request.param == "shipped":
-        if not shipped_models_available():
-            pytest.skip("models/ has no shipped mse and flow")
-        models = SHIPPED_MODELS
-    else:
-        models = request.getfixturevalue("test_models")
-    with UvicornProcess({"PUSHT_MODELS_DIR": str(models), "PUSHT_MAX_STATES": "64"}) as srv:
-        yield srv
 
 
 def act(url: str, **body) -> httpx.Response:

@@ -13,13 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.service_fixtures import REPO, cached_test_models, free_port, server_command
-
-
-@pytest.fixture(scope="session")
-def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Random-weight mse and flow policies (cards, safetensors, ONNX)."""
-    return cached_test_models(tmp_path_factory.getbasetemp())
+from tests.service_fixtures import REPO, free_port, server_command
 
 
 def _copy_models(src: Path, dst: Path) -> Path:

@@ -14,28 +14,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.service_fixtures import REPO, SHIPPED_MODELS, UvicornProcess, cached_test_models, shipped_models_available
+from tests.service_fixtures import REPO, UvicornProcess
 
 STATE = [120.0, 300.0, 256.0, 250.0, 1.0]
-
-
-@pytest.fixture(scope="session")
-def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Random-weight mse and flow policies (cards, safetensors, ONNX)."""
-    return cached_test_models(tmp_path_factory.getbasetemp())
-
-
-@pytest.fixture(scope="module", params=["test", "shipped"], ids=["test-models", "shipped-models"])
-def server(request: pytest.FixtureRequest):
-    """A real uvicorn on 127.0.0.1 serving the random test models, then the shipped models/ (if present)."""
-    if request.param == "shipped":
-        if not shipped_models_available():
-            pytest.skip("models/ has no shipped mse and flow")
-        models_dir = SHIPPED_MODELS
-    else:
-        models_dir = request.getfixturevalue("test_models")
-    with UvicornProcess({"PUSHT_MODELS_DIR": str(models_dir), "PUSHT_MAX_STATES": "64"}) as srv:
-        yield srv
 
 
 BAD_BODIES = [
