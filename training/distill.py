@@ -83,6 +83,7 @@ def distill(cfg: DistillConfig):
     from tqdm import tqdm
 
     from training.checkpoint import git_commit, load_checkpoint, save_checkpoint
+    from training.curves import plot_learning_curve
     from training.data import load_replay
     from training.evaluate import evaluate_policy
     from training.policies import ActingPolicy, build_policy
@@ -133,7 +134,8 @@ def distill(cfg: DistillConfig):
         summary = evaluate_policy(ActingPolicy(student, num_steps=cfg.student_steps, **normalization), "flow", episodes=cfg.eval_episodes,
                                   seed=cfg.eval_seed, num_steps=cfg.student_steps)
         evaluation = {"step": cfg.steps, **{k: v for k, v in summary.scores().items() if k != "wall_time_s"}}
-        run.log({"type": "eval", **evaluation})
+        run.log({"type": "eval", **evaluation, "seeds": summary.seeds})
+        plot_learning_curve(run.records, run.dir / "learning_curve.png")
         reproduce = {"distill": command_line(DistillConfig, PROG, cfg.to_dict(), always=("teacher", "name", "student_steps"))}
         save_checkpoint(str(run.dir / "last"), student, normalization, name="flow", config=cfg.to_dict(), git_commit=git_commit(),
                         steps=cfg.steps, wall_time_s=run.elapsed_s, evaluation=evaluation, finished=True, reproduce=reproduce,
