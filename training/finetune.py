@@ -15,7 +15,6 @@ service and the client take it as they take any flow.
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
