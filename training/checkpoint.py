@@ -8,7 +8,6 @@ only safetensors and JSON, never pickle; every problem raises `CheckpointError` 
 from __future__ import annotations
 
 import json
-import math
 import os
 import subprocess
 import tempfile
@@ -19,28 +18,15 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
+from acting.card import CARD_FIELDS, NORMALIZATION_KEYS, CardError, check_normalization, read_card, validate_card
 from training.policies import POLICY_KINDS, ActingPolicy, build_policy, count_parameters
 
-CARD_FIELDS = (
-    "name",
-    "kind",
-    "architecture",
-    "num_parameters",
-    "config",
-    "normalization",
-    "steps",
-    "wall_time_s",
-    "evaluation",
-    "git_commit",
-    "onnx",
-)
-NORMALIZATION_KEYS = ("state_mean", "state_std", "action_mean", "action_std")
 WEIGHTS_SUFFIX = ".safetensors"
 CARD_SUFFIX = ".json"
 
 
-class CheckpointError(ValueError):
-    """A checkpoint file is missing, corrupt, or does not match its card."""
+CheckpointError = CardError
+"""A checkpoint file is missing, corrupt, or does not match its card (the one error of `acting.card`)."""
 
 
 def save_checkpoint(stem: str | Path, policy: torch.nn.Module, normalization: dict[str, Any], **card_fields: Any) -> dict[str, Any]:
@@ -58,7 +44,7 @@ def save_checkpoint(stem: str | Path, policy: torch.nn.Module, normalization: di
         "architecture": architecture,
         "num_parameters": count_parameters(policy),
         "config": {},
-        "normalization": _check_normalization(_normalization_lists(normalization), architecture, where="normalization"),
+        "normalization": check_normalization(_normalization_lists(normalization), architecture),
         "steps": 0,
         "wall_time_s": 0.0,
         "evaluation": None,
@@ -127,39 +113,8 @@ def load_acting_policy(stem: str | Path, num_steps: int = 10) -> ActingPolicy:
 
 
 def load_card(stem: str | Path) -> dict[str, Any]:
-    """The validated card STEM.json (every field present, kind and normalization well formed)."""
-    stem = checkpoint_stem(stem)
-    path = stem.with_suffix(CARD_SUFFIX)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: checkpoint card not found")
-    try:
-        card = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CheckpointError(f"{path}: card is not valid JSON: {exc}") from None
-    validate_card(card, path)
-    return card
-
-
-def validate_card(card: Any, path: str | Path) -> None:
-    """Raise CheckpointError (naming `path`) unless `card` has every field with a sane kind, architecture and normalization."""
-    if not isinstance(card, dict):
-        raise CheckpointError(f"{path}: card must be a JSON object, got {type(card).__name__}")
-    missing = [f for f in CARD_FIELDS if f not in card]
-    if missing:
-        raise CheckpointError(f"{path}: card is missing fields {missing}")
-    if card["kind"] not in POLICY_KINDS:
-        raise CheckpointError(f"{path}: unknown policy kind {card['kind']!r}; expected one of {POLICY_KINDS}")
-    if not isinstance(card["architecture"], dict):
-        raise CheckpointError(f"{path}: architecture must be an object, got {card['architecture']!r}")
-    if isinstance(card["num_parameters"], bool) or not isinstance(card["num_parameters"], int):
-        raise CheckpointError(f"{path}: num_parameters must be an int, got {card['num_parameters']!r}")
-    try:
-        _check_normalization(card["normalization"], card["architecture"], where="normalization")
-    except ValueError as exc:
-        raise CheckpointError(f"{path}: {exc}") from None
-    onnx = card["onnx"]
-    if onnx is not None and not (isinstance(onnx, dict) and isinstance(onnx.get("file"), str)):
-        raise CheckpointError(f"{path}: onnx must be null or an object with a 'file', got {onnx!r}")
+    """The validated card STEM.json as a dict (`acting.card.read_card`'s rules)."""
+    return read_card(checkpoint_stem(stem).with_suffix(CARD_SUFFIX)).data
 
 
 def update_card(stem: str | Path, **fields: Any) -> dict[str, Any]:
@@ -260,20 +215,3 @@ def _normalization_lists(normalization: Any) -> dict[str, Any]:
             value = value.tolist()
         out[key] = [float(v) for v in value] if isinstance(value, (list, tuple)) else value
     return out
-
-
-def _check_normalization(normalization: Any, architecture: dict[str, Any], where: str) -> dict[str, Any]:
-    if not isinstance(normalization, dict):
-        raise ValueError(f"{where} must be an object with {list(NORMALIZATION_KEYS)}, got {normalization!r}")
-    dims = {"state": architecture.get("state_dim", 5), "action": architecture.get("action_dim", 2)}
-    for key in NORMALIZATION_KEYS:
-        value = normalization.get(key)
-        dim = dims[key.split("_")[0]]
-        if not isinstance(value, list) or len(value) != dim:
-            raise ValueError(f"{where}.{key} must be a list of {dim} numbers, got {value!r}")
-        for v in value:
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise ValueError(f"{where}.{key} must hold finite numbers, got {value!r}")
-        if key.endswith("_std") and any(v < 0 for v in value):
-            raise ValueError(f"{where}.{key} must be >= 0, got {value!r}")
-    return {key: normalization[key] for key in NORMALIZATION_KEYS}

@@ -162,10 +162,13 @@ class TrainingSet:
 
 def training_set(data: str | Path, horizon: int = HORIZON, action_frame: str = "absolute", pad_end: bool = False,
                  extra_data: tuple[str | Path, ...] = (), normalizer: Normalizer | None = None,
-                 human_weight: float = 1.0, policy_step_weight: float = 1.0) -> TrainingSet:
+                 human_weight: float = 1.0, policy_step_weight: float = 1.0, extra_stride: int = 1) -> TrainingSet:
     """The demonstrations' windows plus those of `extra_data`, normalized by `normalizer` or by statistics of the demonstrations alone.
 
-    Extra windows whose first action a human gave (data/human) weigh `human_weight`, the others of such stores `policy_step_weight`."""
+    Extra windows whose first action a human gave (data/human) weigh `human_weight`, the others of such stores `policy_step_weight`.
+    With `extra_stride` k, extra windows start only every k-th frame of an episode (a policy's decision points when k is its chunk length)."""
+    if extra_stride < 1:
+        raise ValueError(f"extra_stride must be >= 1, got {extra_stride}")
     replay = load_replay(data)
     states, chunks = training_windows(replay, horizon, action_frame, pad_end)
     if normalizer is None:
@@ -176,9 +179,12 @@ def training_set(data: str | Path, horizon: int = HORIZON, action_frame: str = "
     for extra in extra_data:
         extra_replay = load_replay(extra)
         extra_states, extra_chunks = training_windows(extra_replay, horizon, action_frame, pad_end)
+        frames = window_frames(extra_replay, horizon, pad_end)
+        keep = _frame_in_episode(frames, extra_replay.episode_ends) % extra_stride == 0
+        extra_states, extra_chunks, frames = extra_states[keep], extra_chunks[keep], frames[keep]
         states, chunks = np.concatenate([states, extra_states]), np.concatenate([chunks, extra_chunks])
         labels = human_labels(extra, len(extra_replay.states))
-        starts_human = labels[window_frames(extra_replay, horizon, pad_end)] if labels is not None else None
+        starts_human = labels[frames] if labels is not None else None
         weights.append(np.ones(len(extra_states)) if starts_human is None else np.where(starts_human, human_weight, policy_step_weight))
     weights = np.concatenate(weights)
     return TrainingSet(
@@ -189,6 +195,13 @@ def training_set(data: str | Path, horizon: int = HORIZON, action_frame: str = "
         # all ones samples exactly as before the weights existed (plain permutations, same draws)
         weights=None if np.all(weights == 1.0) else torch.as_tensor(weights, dtype=torch.float64),
     )
+
+
+def _frame_in_episode(frames: np.ndarray, episode_ends: np.ndarray) -> np.ndarray:
+    """Each global frame index's offset from the start of its episode."""
+    ends = np.asarray(episode_ends, dtype=np.int64)
+    starts = np.concatenate([[0], ends[:-1]])
+    return frames - starts[np.searchsorted(ends, frames, side="right")]
 
 
 def window_starts(episode_ends: np.ndarray, horizon: int = HORIZON) -> np.ndarray:

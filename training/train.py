@@ -220,7 +220,7 @@ def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
         policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, **cfg.architecture_overrides()})
     extra = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
     data = training_set(cfg.data, cfg.horizon, policy.action_frame, cfg.pad_episode_end, extra, base_normalizer,
-                        human_weight=cfg.human_weight, policy_step_weight=cfg.policy_step_weight)
+                        human_weight=cfg.human_weight, policy_step_weight=cfg.policy_step_weight, extra_stride=cfg.extra_stride)
     if len(data) < cfg.batch_size:
         raise ValueError(f"{cfg.data} has {len(data)} windows, fewer than batch_size {cfg.batch_size}")
     return policy, data

@@ -1,0 +1,67 @@
+"""The ONNX Runtime backend: the exported graph NAME.onnx beside its card, and the one place ORT sessions are built."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from acting.card import Card, CardError, require_regular_file
+from acting.policy import Policy
+
+__all__ = ["OnnxPolicy", "onnx_session"]
+
+
+def onnx_session(path: str | Path, threads: int = 1):
+    """An ONNX Runtime CPU session for `path`, tuned for small batches; CardError naming the file if it does not load."""
+    import onnxruntime as ort
+
+    path = Path(path)
+    require_regular_file(path, "ONNX file")
+    options = ort.SessionOptions()
+    # One chunk is a few hundred microseconds of compute: thread pools and parallel graph execution
+    # cost more in wake-ups than they save, and a server's event loop needs the other core.
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    options.log_severity_level = 3
+    try:
+        return ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # ORT raises its own unrelated types for a bad file
+        raise CardError(f"{path}: not a loadable ONNX model: {exc}") from None
+
+
+class OnnxPolicy(Policy):
+    """A policy exported to ONNX (normalization, clipping and the flow's unrolled steps inside the graph)."""
+
+    backend = "onnx"
+
+    def __init__(self, card: Card, threads: int = 1) -> None:
+        super().__init__(card)
+        path = card.onnx_path
+        self._session = onnx_session(path, threads)
+        inputs = {i.name for i in self._session.get_inputs()}
+        expected = {"state", "noise"} if self.kind == "flow" else {"state"}
+        self.takes_prev_state = "prev_state" in inputs
+        if inputs - {"prev_state"} != expected:
+            raise CardError(f"{path}: has inputs {sorted(inputs)}, a {self.kind} policy takes {sorted(expected)} (and optionally prev_state)")
+        self._output = self._session.get_outputs()[0].name
+
+    def check_num_steps(self, num_steps: int) -> str | None:
+        """The unrolled graph has one step count; other counts need the torch backend."""
+        problem = super().check_num_steps(num_steps)
+        if problem is None and num_steps != self.default_num_steps:
+            problem = (f"num_steps={num_steps} is not available on the onnx backend: {self.card.onnx_path.name} unrolls "
+                       f"{self.default_num_steps} flow steps (the torch backend or checkpoint runs other counts)")
+        return problem
+
+    def _run(self, states: np.ndarray, prev_states: np.ndarray | None, noise: np.ndarray | None,
+             num_steps: int | None) -> np.ndarray:
+        feeds = {"state": states}
+        if noise is not None:
+            feeds["noise"] = noise
+        if prev_states is not None:
+            feeds["prev_state"] = prev_states
+        return self._session.run([self._output], feeds)[0]

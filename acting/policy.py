@@ -1,0 +1,148 @@
+"""The one acting interface: a loaded policy turns env-unit states into clipped env-unit action chunks.
+
+`Policy.act` takes states [B, state_dim] (and, for a policy that uses them, the previous states), and
+for a flow per-row `seeds` or explicit `noise`; it pads the batch to a multiple of four rows
+(`pusht.seeding.pad_rows`, so a row's actions never depend on its batch mates) and returns actions
+[B, horizon, action_dim]. Backends implement `_run` once each: ONNX Runtime (`acting.onnx_backend`)
+and torch (`acting.torch_backend`, imported only when asked for).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from acting.card import Card, CardError
+from pusht.seeding import pad_rows, row_noise
+
+__all__ = ["Policy", "load_policy", "rollout_act"]
+
+BACKENDS = ("onnx", "torch")
+
+
+class Policy:
+    """A policy behind one card, run by one backend; subclasses implement `_run` (and may narrow `check_num_steps`)."""
+
+    backend = ""
+    takes_prev_state = False
+
+    def __init__(self, card: Card) -> None:
+        self.card = card
+        self.name = card.path.stem
+        self.kind = card.kind
+        self.horizon = card.horizon
+        self.state_dim = card.state_dim
+        self.action_dim = card.action_dim
+        self.default_num_steps = card.num_steps
+        self._rng = np.random.default_rng()
+
+    def act(self, states: np.ndarray, prev_states: np.ndarray | None = None, *, seeds: Sequence[int] | None = None,
+            noise: np.ndarray | None = None, num_steps: int | None = None, noise_scale: float = 1.0) -> np.ndarray:
+        """Actions float32 [B, horizon, action_dim] in env units, clipped, for states float32 [B, state_dim].
+
+        Flow start noise: `noise` [B, horizon, action_dim] if given, else row i's from seeds[i] (`row_noise`), else a
+        fresh draw; times `noise_scale`. mse ignores seeds and noise. `prev_states` default to `states`."""
+        states = np.ascontiguousarray(states, dtype=np.float32)
+        if states.ndim != 2 or states.shape[1] != self.state_dim or len(states) == 0:
+            raise ValueError(f"states must have shape [B >= 1, {self.state_dim}], got {list(states.shape)}")
+        rows = len(states)
+        if self.kind == "flow":
+            noise = self._noise(rows, seeds, noise)
+            if noise_scale != 1.0:
+                noise = noise * np.float32(noise_scale)
+            noise = pad_rows(noise)
+        prev = None
+        if self.takes_prev_state:
+            prev = states if prev_states is None else np.ascontiguousarray(prev_states, dtype=np.float32)
+            if prev.shape != states.shape:
+                raise ValueError(f"prev_states must have the shape of states {list(states.shape)}, got {list(prev.shape)}")
+            prev = pad_rows(prev)
+        return self._run(pad_rows(states), prev, noise, num_steps)[:rows]
+
+    def check_num_steps(self, num_steps: int) -> str | None:
+        """None if a chunk can be sampled in `num_steps` flow steps, else why not."""
+        if self.kind != "flow":
+            return f"num_steps applies to flow policies; policy {self.name!r} is {self.kind} (one network evaluation per chunk)"
+        trained = self.card.sampler_steps
+        if trained is not None and num_steps != trained:
+            return (f"num_steps={num_steps} is not available: policy {self.name!r} was distilled to sample in {trained} "
+                    f"step{'s' if trained != 1 else ''}, and other counts do not give its actions")
+        return None
+
+    def network_evaluations(self, num_steps: int | None = None) -> int:
+        """Network evaluations per chunk: the flow step count, 1 for mse."""
+        return 1 if self.kind != "flow" else (num_steps or self.default_num_steps)
+
+    def check_outputs(self) -> None:
+        """One call on 8 fixed states: CardError naming the file on a wrong shape or a non-finite output (broken weights)."""
+        rng = np.random.default_rng(0)
+        states = rng.uniform(0, 512, (8, self.state_dim)).astype(np.float32)
+        states[:, -1] = rng.uniform(0, 2 * np.pi, 8)
+        states[0] = 256.0
+        where = self.card.onnx_path if self.backend == "onnx" else self.card.stem.with_suffix(".safetensors")
+        try:
+            out = np.asarray(self.act(states, seeds=range(8)))
+        except Exception as exc:
+            raise CardError(f"{where}: test inference failed: {exc}") from exc
+        expected = (8, self.horizon, self.action_dim)
+        if out.shape != expected:
+            raise CardError(f"{where}: returns shape {list(out.shape)}, its card says [B, {self.horizon}, {self.action_dim}]")
+        if not np.isfinite(out).all():
+            raise CardError(f"{where}: test output is not finite (NaN or inf): broken weights")
+
+    def _noise(self, rows: int, seeds: Sequence[int] | None, noise: np.ndarray | None) -> np.ndarray:
+        shape = (rows, self.horizon, self.action_dim)
+        if noise is not None:
+            noise = np.ascontiguousarray(noise, dtype=np.float32)
+            if noise.shape != shape:
+                raise ValueError(f"noise must have shape {list(shape)}, got {list(noise.shape)}")
+            return noise
+        if seeds is not None:
+            if len(seeds) != rows:
+                raise ValueError(f"seeds has {len(seeds)} entries for {rows} states; give one seed per state")
+            return row_noise(seeds, self.horizon, self.action_dim)
+        return self._rng.standard_normal(shape, dtype=np.float32)
+
+    def _run(self, states: np.ndarray, prev_states: np.ndarray | None, noise: np.ndarray | None,
+             num_steps: int | None) -> np.ndarray:
+        raise NotImplementedError
+
+
+def load_policy(model: str | Path, backend: str | None = None, threads: int = 1, num_steps: int | None = None) -> Policy:
+    """The policy of an ONNX file (card beside it) or a checkpoint stem / card; backend: onnx for .onnx files, else torch.
+
+    `num_steps` sets the flow step count of every call that gives none (ValueError where the backend cannot run it)."""
+    path = Path(model)
+    backend = backend or ("onnx" if path.suffix == ".onnx" else "torch")
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
+    from acting.card import read_card
+
+    card = read_card(path)  # a missing or broken card is named before any backend loads
+    if backend == "onnx":
+        from acting.onnx_backend import OnnxPolicy
+
+        policy: Policy = OnnxPolicy(card, threads)
+    else:
+        from acting.torch_backend import TorchPolicy
+
+        policy = TorchPolicy(card, threads)
+    if num_steps is not None and policy.kind == "flow":
+        problem = policy.check_num_steps(num_steps)
+        if problem is not None:
+            raise ValueError(problem)
+        policy.default_num_steps = num_steps
+    return policy
+
+
+def rollout_act(policy: Policy, noise_scale: float = 1.0):
+    """The rollout runner's act function (states, one request seed per row) -> actions: row i's noise from seeds[i]."""
+    if not 0 <= noise_scale <= 10:
+        raise ValueError(f"noise_scale must be in [0, 10], got {noise_scale}")
+
+    def act(states: np.ndarray, seeds: list[int]) -> np.ndarray:
+        return policy.act(states, seeds=seeds, noise_scale=noise_scale)
+
+    return act

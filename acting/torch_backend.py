@@ -1,0 +1,68 @@
+"""The torch backend: a checkpoint NAME.safetensors rebuilt by `training.checkpoint`, any flow step count.
+
+Imported only when asked for, so that serving ONNX needs no torch.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from acting.card import Card, CardError, require_regular_file
+from acting.policy import Policy
+
+__all__ = ["TorchPolicy"]
+
+
+class TorchPolicy(Policy):
+    """A policy run by torch from its checkpoint (or from an in-memory `ActingPolicy`, as training evaluates)."""
+
+    backend = "torch"
+
+    def __init__(self, card: Card, threads: int = 0, module: Any = None) -> None:
+        super().__init__(card)
+        try:
+            import torch
+        except ModuleNotFoundError as exc:
+            raise CardError(
+                f"{card.stem}: the torch backend needs torch ({exc.name} is not installed): install the train extra "
+                f"(pip install -e '.[train]'), or use the ONNX export ({card.stem}.onnx), which needs only the serve extra"
+            ) from None
+        self._torch = torch
+        if threads:
+            torch.set_num_threads(threads)
+        if module is None:
+            from training.checkpoint import load_acting_policy
+
+            require_regular_file(card.stem.with_suffix(".safetensors"), "weights file")
+            module = load_acting_policy(card.stem)
+        self.module = module
+
+    @classmethod
+    def from_module(cls, module: Any, name: str = "in-memory") -> "TorchPolicy":
+        """A policy around a torch `ActingPolicy` that has no files (training's periodic evaluation)."""
+        policy = module.policy
+        data = {"name": name, "kind": policy.kind, "architecture": policy.architecture, "onnx": None,
+                "sampler_steps": getattr(module, "sampler_steps", None)}
+        acting = cls(Card(Path(f"{name}.json"), data), module=module)
+        acting.default_num_steps = module.num_steps if policy.kind == "flow" else None
+        return acting
+
+    def _run(self, states: np.ndarray, prev_states: np.ndarray | None, noise: np.ndarray | None,
+             num_steps: int | None) -> np.ndarray:
+        torch = self._torch
+        was_training = self.module.training
+        self.module.eval()
+        try:
+            with torch.inference_mode():
+                state_t = torch.from_numpy(states)
+                if noise is None:
+                    out = self.module(state_t)
+                else:
+                    steps = self.default_num_steps if num_steps is None else num_steps
+                    out = self.module(state_t, torch.from_numpy(noise), steps)
+        finally:
+            self.module.train(was_training)
+        return out.numpy()
