@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import gymnasium
 
-from pusht.env import MAX_EPISODE_STEPS, SUCCESS_THRESHOLD, PushTEnv
+from pusht.env import MAX_EPISODE_STEPS, PushTEnv
 from pusht.geometry import coverage
+from pusht.spec import SUCCESS_COVERAGE
 
-__all__ = ["ENV_ID", "MAX_EPISODE_STEPS", "SUCCESS_THRESHOLD", "PushTEnv", "coverage"]
+__all__ = ["ENV_ID", "MAX_EPISODE_STEPS", "SUCCESS_COVERAGE", "PushTEnv", "coverage"]
 
 ENV_ID = "pusht/PushT-v0"
 

@@ -22,10 +22,10 @@ from gymnasium import spaces
 
 from pusht.geometry import GOAL_POSE, TEE_RECTS, coverage
 from pusht.render import render_frame
+from pusht.spec import STATE_DIM, SUCCESS_COVERAGE
 
-__all__ = ["PushTEnv", "SUCCESS_THRESHOLD", "MAX_EPISODE_STEPS"]
+__all__ = ["PushTEnv", "MAX_EPISODE_STEPS"]
 
-SUCCESS_THRESHOLD = 0.95
 """An episode succeeds (and terminates) once coverage exceeds this fraction of the goal."""
 
 MAX_EPISODE_STEPS = 300
@@ -35,7 +35,6 @@ _DT = 0.01  # physics substep (s)
 _CONTROL_HZ = 10
 _N_SUBSTEPS = int(1 / (_DT * _CONTROL_HZ))  # 10, computed as gym-pusht computes it
 _K_P, _K_V = 100, 20  # PD gains of the agent
-_STATE_DIM = 5
 _TWO_PI = 2 * np.pi
 
 
@@ -81,7 +80,7 @@ class PushTEnv(gym.Env):
         )
         self.action_space = spaces.Box(low=0, high=512, shape=(2,), dtype=np.float32)
         self.goal_pose = np.array(GOAL_POSE)
-        self.success_threshold = SUCCESS_THRESHOLD
+        self.success_threshold = SUCCESS_COVERAGE
 
         self._space: pymunk.Space | None = None
         self._agent: pymunk.Body | None = None
@@ -151,8 +150,8 @@ class PushTEnv(gym.Env):
         bx, by = self._block.position
         angle = self._block.angle
         cov = coverage(bx, by, angle)
-        reward = min(max(cov / SUCCESS_THRESHOLD, 0.0), 1.0)
-        terminated = cov > SUCCESS_THRESHOLD
+        reward = min(max(cov / SUCCESS_COVERAGE, 0.0), 1.0)
+        terminated = cov > SUCCESS_COVERAGE
         truncated = self._elapsed_steps >= self.max_episode_steps
         info = self._info(bx, by, angle, cov)
         info["is_success"] = terminated
@@ -301,10 +300,10 @@ def _state_options(options: dict[str, Any] | None) -> tuple[np.ndarray | None, n
         try:
             state = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"options[{key!r}] must be {_STATE_DIM} numbers, got {value!r} ({exc})") from None
-        if state.shape != (_STATE_DIM,):
+            raise ValueError(f"options[{key!r}] must be {STATE_DIM} numbers, got {value!r} ({exc})") from None
+        if state.shape != (STATE_DIM,):
             raise ValueError(
-                f"options[{key!r}] must have shape ({_STATE_DIM},) "
+                f"options[{key!r}] must have shape ({STATE_DIM},) "
                 f"[agent_x, agent_y, block_x, block_y, block_angle], got shape {state.shape}"
             )
         if not np.all(np.isfinite(state)):

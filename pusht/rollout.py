@@ -20,6 +20,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from pusht.spec import ACTION_DIM, SUCCESS_COVERAGE
 from pusht.results import EpisodeResult, RolloutSummary, Trajectory, card_id, check_output_path, write_episode_records
 from pusht.seeding import (
     BATCH_MULTIPLE,
@@ -60,11 +61,6 @@ ProgressFn = Callable[[int, int], None]
 FrameFn = Callable[[np.ndarray, int, float, bool], np.ndarray]
 """(rendered frame, step, coverage, success so far) -> the frame to keep (e.g. shrunk and captioned)."""
 
-SUCCESS_COVERAGE = 0.95
-"""An episode succeeds once the block covers more than this fraction of the goal (as gym-pusht)."""
-
-STATE_DIM = 5
-ACTION_DIM = 2
 
 
 def run_episodes(

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pusht.env import MAX_EPISODE_STEPS, SUCCESS_THRESHOLD, PushTEnv
+from pusht.env import MAX_EPISODE_STEPS, PushTEnv
+from pusht.spec import SUCCESS_COVERAGE
 
 __all__ = ["ChunkStep", "ChunkVectorEnv"]
 
@@ -77,7 +78,7 @@ class ChunkVectorEnv:
                 obs, reward, terminated, truncated, info = env.step(action)
                 self.elapsed[i] += 1
                 self._max_reward[i] = max(self._max_reward[i], reward)
-                if info["coverage"] > SUCCESS_THRESHOLD:
+                if info["coverage"] > SUCCESS_COVERAGE:
                     success[i] = True
                 if terminated or truncated or self.elapsed[i] >= self.max_steps:
                     done[i] = True
@@ -112,7 +113,7 @@ class ChunkVectorEnv:
             for action in chunk:
                 obs, reward, terminated, _, info = scratch.step(action)
                 elapsed += 1
-                if info["coverage"] > SUCCESS_THRESHOLD:
+                if info["coverage"] > SUCCESS_COVERAGE:
                     success[c] = True
                 if terminated or elapsed >= self.max_steps:
                     done[c] = True
@@ -125,6 +126,6 @@ class ChunkVectorEnv:
         self._next_seed += 1
         self.obs[i] = obs
         self.elapsed[i] = 0
-        self._reward[i] = min(info["coverage"] / SUCCESS_THRESHOLD, 1.0)
+        self._reward[i] = min(info["coverage"] / SUCCESS_COVERAGE, 1.0)
         self._max_reward[i] = self._reward[i]
 

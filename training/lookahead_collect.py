@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pusht.env import MAX_EPISODE_STEPS, SUCCESS_THRESHOLD, PushTEnv
+from pusht.env import MAX_EPISODE_STEPS, PushTEnv
+from pusht.spec import SUCCESS_COVERAGE
 from training.config import HelpFormatter
 from training.data import Replay, save_replay
 
@@ -78,7 +79,7 @@ def collect(model: str, episodes: int, seed: int, candidates: int, num_envs: int
                 e["steps"] += 1
                 e["max"] = max(e["max"], reward)
                 if terminated or e["steps"] >= MAX_EPISODE_STEPS:
-                    e["done"], e["success"] = True, info["coverage"] > SUCCESS_THRESHOLD
+                    e["done"], e["success"] = True, info["coverage"] > SUCCESS_COVERAGE
                     break
         for e in [e for e in envs if e.get("done")]:
             results.append((e["max"], e["success"]))
