@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import torch
 
+from acting import load_policy, rollout_act
 from service.viewer_episode import Episode, save_episode
 from training.data import DEFAULT_DATASET, Replay, save_replay, training_set
-from training.evaluate import evaluate_policy, load_actor, make_act_fn, onnx_actor
+from training.evaluate import evaluate_policy
 from training import dagger, train
 
 REPO = Path(__file__).resolve().parents[1]
@@ -22,8 +23,7 @@ pytestmark = pytest.mark.skipif(not (FLOW.with_suffix(".onnx").is_file() and DEF
 
 def corrected_episode(folder: Path, seed: int = 300000, policy_steps: int = 10, human_steps: int = 20, after: int = 10) -> Path:
     """A viewer recording made by the viewer's own code: the flow policy, a scripted 'human' takeover, the policy again."""
-    actor, kind = onnx_actor(FLOW.with_suffix(".onnx"))
-    act = make_act_fn(actor, kind)
+    act = rollout_act(load_policy(FLOW.with_suffix(".onnx")))
     episode = Episode(seed, "flow")
     for step in range(policy_steps + human_steps + after):
         if policy_steps <= step < policy_steps + human_steps:
@@ -94,11 +94,11 @@ def test_dagger_round_on_a_tiny_budget(tmp_path, corrections, capsys):
     assert dagger.main(argv) == 0
     line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert line["corrections"] == {"folder": str(corrections), "stores": 1, "episodes": 1, "frames": 40, "human_frames": 20}
-    actor, kind = load_actor(FLOW)
-    base = evaluate_policy(actor, kind, episodes=2, seed=100000, max_steps=24).scores()
+    base = evaluate_policy(load_policy(FLOW), episodes=2, seed=100000, max_steps=24).scores()
     assert line["before"]["mean_max_reward"] == base["mean_max_reward"]
-    after_actor, _ = load_actor(tmp_path / "round1" / "last")
-    after = evaluate_policy(after_actor, kind, episodes=2, seed=100000, max_steps=24).scores()
+    after_policy = load_policy(tmp_path / "round1" / "last")
+    assert after_policy.kind == "flow"
+    after = evaluate_policy(after_policy, episodes=2, seed=100000, max_steps=24).scores()
     assert line["after"]["mean_max_reward"] == after["mean_max_reward"]
     assert line["change"]["mean_max_reward"] == pytest.approx(after["mean_max_reward"] - base["mean_max_reward"])
     card = json.loads((tmp_path / "round1" / "last.json").read_text())

@@ -25,13 +25,15 @@ from pathlib import Path
 
 import numpy as np
 
+from acting import Policy, rollout_act
 from pusht.geometry import coverage
-from pusht.rollout import SUCCESS_COVERAGE, Trajectory, default_env_factory, run_episodes
+from pusht.rollout import Trajectory, default_env_factory, run_episodes
+from pusht.spec import HELD_OUT_SEED, SUCCESS_COVERAGE
+from training.cli import HelpFormatter
 from training.data import Replay, save_replay
-from training.config import HelpFormatter
-from training.evaluate import evaluate_policy, load_actor, make_act_fn, report
+from training.evaluate import evaluate_policy, load_model, report
 
-HELDOUT_SEEDS = range(200000, 200100)
+HELDOUT_SEEDS = range(HELD_OUT_SEED, HELD_OUT_SEED + 100)
 """Seeds of the shipped models' held-out evaluation (training.ship): never collected from."""
 RETRY_SEED_STRIDE = 10**9
 """Retries of a collection from --seed S play episode seeds from (S + 1) * 10**9 on (their noise only)."""
@@ -42,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m training.collect", description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
     parser.add_argument("--model", required=True, help="an ONNX file or a checkpoint stem (models/flow)")
     parser.add_argument("--episodes", type=int, default=1000, help="episodes to play (seeds seed..seed+episodes-1)")
-    parser.add_argument("--seed", type=int, default=300000, help="first episode seed; must keep the range clear of the held-out seeds 200000..200099")
+    parser.add_argument("--seed", type=int, default=300000, help=f"first episode seed; must keep the range clear of the held-out seeds {HELDOUT_SEEDS.start}..{HELDOUT_SEEDS.stop - 1}")
     parser.add_argument("--num-envs", type=int, default=250, help="environments run in lockstep")
     parser.add_argument("--noise-scale", type=float, default=1.0, help="flow: multiply the start noise by this (on top of the model's own noise_scale)")
     parser.add_argument("--retries", type=int, default=0, help="replay each near-miss this many times from its first state within --retry-coverage")
@@ -87,14 +89,14 @@ def collect(
             f"seeds {seed}..{seed + episodes - 1} overlap the held-out seeds "
             f"{HELDOUT_SEEDS.start}..{HELDOUT_SEEDS.stop - 1}; choose another --seed"
         )
-    actor, kind = load_actor(model)
+    policy = load_model(model)
     summary = evaluate_policy(
-        actor, kind, episodes=episodes, seed=seed, num_envs=num_envs, progress=progress, record_trajectories=True,
+        policy, episodes=episodes, seed=seed, num_envs=num_envs, progress=progress, record_trajectories=True,
         noise_scale=noise_scale, max_steps=max_steps,
     )
     kept = [t for t, episode in zip(summary.trajectories, summary.episodes) if episode.success]
     failed = [t for t, episode in zip(summary.trajectories, summary.episodes) if not episode.success]
-    retried = _retry_near_misses(actor, kind, failed, retries, retry_coverage, max_steps, seed, noise_scale) if retries else []
+    retried = _retry_near_misses(policy, failed, retries, retry_coverage, max_steps, seed, noise_scale) if retries else []
     kept += [trajectory for trajectory, _ in retried]
     if not kept:
         raise ValueError(f"none of the {episodes} episodes succeeded; nothing written to {out}")
@@ -122,12 +124,12 @@ def collect(
         "kept_episodes": len(kept),
         "kept_from_retries": len(retried),
         "kept_frames": int(replay.episode_ends[-1]),
-        **report(summary, model=str(model), kind=kind, env="pusht"),
+        **report(summary, model=str(model), kind=policy.kind, env="pusht"),
     }
 
 
 def _retry_near_misses(
-    actor, kind: str, failed: list[Trajectory], retries: int, retry_coverage: float, max_steps: int, seed: int, noise_scale: float
+    policy: Policy, failed: list[Trajectory], retries: int, retry_coverage: float, max_steps: int, seed: int, noise_scale: float
 ) -> list[tuple[Trajectory, int]]:
     """For each failed episode that reached `retry_coverage`: its steps up to there plus the first of `retries` successful retries.
 
@@ -146,7 +148,7 @@ def _retry_near_misses(
     # seed, far above any evaluation's, gives each retry of each collection its own noise.
     base = (seed + 1) * RETRY_SEED_STRIDE
     summary = run_episodes(
-        make_act_fn(actor, kind, noise_scale),
+        rollout_act(policy, noise_scale),
         [base + k for k in range(len(starts) * retries)],
         num_envs=min(1000, len(starts) * retries),
         max_steps=max_steps,

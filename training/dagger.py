@@ -18,8 +18,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from acting.card import card_stem, read_card
+from pusht.spec import TRAIN_EVAL_SEED
 from training.config import HelpFormatter, TrainConfig
-from training.evaluate import evaluate_policy, load_actor, read_card
+from training.evaluate import evaluate_policy, load_model
 
 RECIPE_KEYS = ("data", "horizon", "pad_episode_end", "state_noise_start", "state_noise_end", "state_noise_schedule", "action_horizon")
 """What the fine-tuning takes from the base run's config, so the corrections join the data it learned from."""
@@ -40,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--policy-step-weight", type=float, default=0.0, help="sampling weight of the policy's own steps in the corrections")
     parser.add_argument("--data", default=None, help="the demonstrations (default: the base run's)")
     parser.add_argument("--episodes", type=int, default=100, help="evaluation episodes, before and after")
-    parser.add_argument("--seed", type=int, default=100000, help="first evaluation episode seed (100000: training's evaluation seeds, not the held-out ones)")
+    parser.add_argument("--seed", type=int, default=TRAIN_EVAL_SEED, help=f"first evaluation episode seed ({TRAIN_EVAL_SEED}: training's evaluation seeds, not the held-out ones)")
     parser.add_argument("--num-envs", type=int, default=100, help="envs in lockstep during evaluation (scores do not depend on it)")
     parser.add_argument("--max-steps", type=int, default=300, help="episode step limit in evaluation")
     parser.add_argument("--train-seed", type=int, default=0, help="seed of the fine-tuning")
@@ -81,8 +83,8 @@ def dagger_round(args: argparse.Namespace) -> dict[str, Any]:
     """Evaluate, fine-tune on the corrections, evaluate again; the report line."""
     from training.train import train
 
-    stem = Path(args.model).with_suffix("") if Path(args.model).suffix == ".onnx" else Path(args.model)
-    card = read_card(stem)
+    stem = card_stem(args.model)
+    card = read_card(stem).data
     stores, counts = correction_stores(args.corrections)
     base_config = card.get("config") or {}
     recipe = {k: base_config[k] for k in RECIPE_KEYS if k in base_config}
@@ -110,8 +112,7 @@ def dagger_round(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _score(stem: Path, args: argparse.Namespace) -> dict[str, Any]:
-    actor, kind = load_actor(stem)
-    summary = evaluate_policy(actor, kind, episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
+    summary = evaluate_policy(load_model(stem), episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
                               max_steps=args.max_steps, progress=not args.no_progress)
     scores = summary.scores()
     return {k: scores[k] for k in ("episodes", "seeds", "mean_max_reward", "mean_max_reward_ci95", "success_rate", "success_rate_ci95", "mean_length")}

@@ -131,8 +131,8 @@ def distill(cfg: DistillConfig):
                 raise ValueError(f"stopped by {run.stop_signal} at step {step}; distillation is short: start it again with another --name")
         bar.close()
         student.eval()
-        summary = evaluate_policy(ActingPolicy(student, num_steps=cfg.student_steps, **normalization), "flow", episodes=cfg.eval_episodes,
-                                  seed=cfg.eval_seed, num_steps=cfg.student_steps)
+        summary = evaluate_policy(ActingPolicy(student, num_steps=cfg.student_steps, **normalization), episodes=cfg.eval_episodes,
+                                  seed=cfg.eval_seed)
         evaluation = {"step": cfg.steps, **{k: v for k, v in summary.scores().items() if k != "wall_time_s"}}
         run.log({"type": "eval", **evaluation, "seeds": summary.seeds})
         plot_learning_curve(run.records, run.dir / "learning_curve.png")

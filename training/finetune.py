@@ -68,7 +68,7 @@ def finetune(cfg: FinetuneConfig):
     bar = _progress_bar(cfg.iterations, cfg.progress, first - 1)
 
     def evaluate(iteration: int) -> dict:
-        summary = evaluate_policy(agent.acting, "flow", episodes=cfg.eval_episodes, seed=cfg.eval_seed, num_steps=cfg.flow_num_steps)
+        summary = evaluate_policy(agent.acting, episodes=cfg.eval_episodes, seed=cfg.eval_seed)
         record = {"type": "eval", "step": iteration, "mean_max_reward": summary.mean_max_reward,
                   "mean_max_reward_ci95": list(summary.mean_max_reward_ci95), "success_rate": summary.success_rate,
                   "success_rate_ci95": list(summary.success_rate_ci95), "seeds": [summary.seeds[0], summary.seeds[-1]],

@@ -17,10 +17,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from pusht.spec import HELD_OUT_SEED
 from training.checkpoint import load_card, update_card
 from training.config import HelpFormatter
 from training.evaluate import ENVS, write_gif
-from training.ship import HELDOUT_SEED, _score
+from training.ship import score_heldout
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -29,7 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--name", nargs="+", required=True, help="shipped policies to re-score (models/NAME.json and .onnx)")
     parser.add_argument("--models-dir", default="models", help="where shipped policies live")
     parser.add_argument("--episodes", type=int, default=100, help="held-out episodes")
-    parser.add_argument("--seed", type=int, default=HELDOUT_SEED, help="first held-out episode seed")
+    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="first held-out episode seed")
     parser.add_argument("--envs", nargs="+", choices=ENVS, default=list(ENVS), help="envs to score in")
     args = parser.parse_args(argv)
     try:
@@ -49,10 +50,10 @@ def rescore(models_dir: Path, name: str, episodes: int, seed: int, envs: list[st
     if not (record / "last.json").is_file():
         raise FileNotFoundError(f"{stem}.json names its record {record}, which has no last.json")
     reports: list[dict[str, Any]] = []
-    final, frames = _score(stem.with_suffix(".onnx"), stem.with_suffix(".onnx"), episodes, seed, envs, reports, "final", gif=True)
+    final, frames = score_heldout(stem.with_suffix(".onnx"), stem.with_suffix(".onnx"), episodes, seed, envs, reports, "final", gif=True)
     best = None
     if (record / "best.safetensors").is_file():
-        best = _score(record / "best", record / "best", episodes, seed, envs, reports, "best")[0]
+        best = score_heldout(record / "best", record / "best", episodes, seed, envs, reports, "best")[0]
     update_card(stem, heldout_evaluation=final)
     update_card(record / "last", heldout_evaluation=final)
     if best is not None:

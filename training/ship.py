@@ -24,12 +24,12 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from pusht.spec import HELD_OUT_SEED
 from training.checkpoint import CheckpointError, load_card, set_noise_scale, update_card, write_text_atomic
 from training.config import HelpFormatter, command_line
-from training.evaluate import ENVS, evaluate_policy, load_actor, report, write_gif
+from training.evaluate import ENVS, evaluate_policy, load_model, report, write_gif
 from training.export import export_onnx
 
-HELDOUT_SEED = 200000
 SHIPPED_SUFFIXES = (".safetensors", ".onnx", ".json")  # the card last: the service finds a policy by its card
 
 
@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models-dir", default="models", help="where shipped policies live")
     parser.add_argument("--records-dir", default="records", help="where run records live")
     parser.add_argument("--episodes", type=int, default=100, help="held-out episodes")
-    parser.add_argument("--seed", type=int, default=HELDOUT_SEED, help="first held-out episode seed")
+    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="first held-out episode seed")
     parser.add_argument("--envs", nargs="+", choices=ENVS, default=list(ENVS), help="envs to score in")
     parser.add_argument("--noise-scale", type=float, default=None, help="flow: set the sampling noise_scale of the run's final and best checkpoints first (chosen on non-held-out seeds)")
     parser.add_argument("--note", default="", help="what changed from the published recipe and why (stored in the card)")
@@ -85,7 +85,7 @@ def ship(
     staging = None
     try:
         if name is None:
-            final = _score(run / "last", run / "last", episodes, seed, envs, reports, "final")[0]
+            final = score_heldout(run / "last", run / "last", episodes, seed, envs, reports, "final")[0]
         else:
             # the candidate is built and scored aside, so a refused or failed ship leaves models/ as it was
             models_dir.mkdir(parents=True, exist_ok=True)
@@ -96,9 +96,9 @@ def ship(
             card.update(name=name, run=str(record), reproduce=reproduce_commands(card, run, name))
             write_text_atomic(staged.with_suffix(".json"), json.dumps(card, indent=2, allow_nan=False) + "\n")
             export_onnx(staged)
-            final, frames = _score(staged.with_suffix(".onnx"), models_dir / f"{name}.onnx", episodes, seed, envs, reports, "final", gif=True)
+            final, frames = score_heldout(staged.with_suffix(".onnx"), models_dir / f"{name}.onnx", episodes, seed, envs, reports, "final", gif=True)
             check_replacement(models_dir / name, final[envs[0]], envs[0], force)
-        best = _score(run / "best", run / "best", episodes, seed, envs, reports, "best")[0] if has_best else None
+        best = score_heldout(run / "best", run / "best", episodes, seed, envs, reports, "best")[0] if has_best else None
 
         write_record(run, record, final, best, extra, keep_best_weights=name is not None)
         if staging is not None:
@@ -172,17 +172,19 @@ def reproduce_commands(card: dict[str, Any], run: Path, name: str) -> list[str]:
     return [command_line(card["config"]), ship_command]
 
 
-def _score(model: Path, label: Path, episodes: int, seed: int, envs: list[str], reports: list[dict[str, Any]],
+def score_heldout(model: Path, label: Path, episodes: int, seed: int, envs: list[str], reports: list[dict[str, Any]],
            checkpoint: str, gif: bool = False) -> tuple[dict[str, Any], list[Any]]:
-    """Held-out scores of `model` per env (reports appended, named `label`) and the first env's first-episode frames if `gif`."""
+    """Held-out scores of `model` per env (reports appended, named `label`) and the first env's first-episode frames if `gif`.
+
+    `training.rescore` scores with this too, so a re-scored card reads as a shipped one."""
     scores, frames = {}, []
+    policy = load_model(model)
     for env in envs:
-        actor, kind = load_actor(model)
         record_frames = gif and env == envs[0]
-        summary = evaluate_policy(actor, kind, episodes=episodes, seed=seed, env=env, record_frames=record_frames)
+        summary = evaluate_policy(policy, episodes=episodes, seed=seed, env=env, record_frames=record_frames)
         if record_frames:
             frames = summary.frames
-        scores[env] = report(summary, model=str(label), kind=kind, env=env)
+        scores[env] = report(summary, model=str(label), kind=policy.kind, env=env)
         reports.append({"checkpoint": checkpoint, **scores[env]})
     return scores, frames
 

@@ -272,14 +272,12 @@ def _evaluate(policy: nn.Module, normalization: dict, cfg: TrainConfig, acting_c
     try:
         summary = evaluate_policy(
             acting_cls(policy, num_steps=cfg.flow_num_steps, **normalization),
-            cfg.policy,
             episodes=cfg.eval_episodes,
             seed=cfg.eval_seed,
             num_envs=cfg.eval_num_envs or None,
             env=cfg.eval_env,
             action_horizon=cfg.action_horizon,
             max_steps=cfg.eval_max_steps,
-            num_steps=cfg.flow_num_steps,
         )
     finally:
         policy.train()
