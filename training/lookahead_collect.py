@@ -19,29 +19,33 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from acting import load_policy
 from pusht.env import MAX_EPISODE_STEPS, PushTEnv
-from pusht.spec import SUCCESS_COVERAGE
+from pusht.spec import RESERVED_SEEDS, SUCCESS_COVERAGE
 from training.config import HelpFormatter
 from training.data import Replay, save_replay
-
-RESERVED_SEEDS = range(100_000, 1_000_000)  # periodic, tuning, held-out and unused-score ranges
 
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: collect, write the zarr, print one JSON line."""
     parser = argparse.ArgumentParser(prog="python -m training.lookahead_collect", description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
-    parser.add_argument("--model", default="models/flow", help="flow checkpoint stem")
+    parser.add_argument("--model", default="models/flow", help="flow checkpoint stem (or its ONNX file)")
     parser.add_argument("--episodes", type=int, default=500, help="episodes to play")
-    parser.add_argument("--seed", type=int, default=3_000_000, help="first episode seed (outside 100000..999999)")
+    parser.add_argument("--seed", type=int, default=3_000_000, help=f"first episode seed (outside the evaluation ranges {RESERVED_SEEDS.start}..{RESERVED_SEEDS.stop - 1})")
     parser.add_argument("--candidates", type=int, default=16, help="chunks simulated per decision")
     parser.add_argument("--num-envs", type=int, default=32, help="episodes played side by side")
     parser.add_argument("--successful-only", action="store_true", help="write only the episodes that succeeded")
     parser.add_argument("--out", required=True, help="output zarr store (replaced if it exists)")
     args = parser.parse_args(argv)
     if args.seed < RESERVED_SEEDS.stop and args.seed + args.episodes > RESERVED_SEEDS.start:
-        parser.error(f"seeds {args.seed}..{args.seed + args.episodes - 1} overlap the evaluation ranges 100000..999999")
+        parser.error(f"seeds {args.seed}..{args.seed + args.episodes - 1} overlap the evaluation ranges "
+                     f"{RESERVED_SEEDS.start}..{RESERVED_SEEDS.stop - 1}")
     torch.set_num_threads(1)
-    report = collect(args.model, args.episodes, args.seed, args.candidates, args.num_envs, Path(args.out), args.successful_only)
+    try:
+        report = collect(args.model, args.episodes, args.seed, args.candidates, args.num_envs, Path(args.out), args.successful_only)
+    except (ValueError, FileNotFoundError) as exc:  # acting's CardError is a ValueError
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(json.dumps(report))
     return 0
 
@@ -50,10 +54,9 @@ def collect(model: str, episodes: int, seed: int, candidates: int, num_envs: int
     """Play the lookahead teacher on seeds seed..seed+episodes-1 and write its episodes to `out`; returns the report."""
     from tqdm import tqdm
 
-    from training.checkpoint import load_acting_policy
-
-    acting = load_acting_policy(model)
-    acting.eval()
+    policy = load_policy(model, threads=1)
+    if policy.kind != "flow":
+        raise ValueError(f"{model}: the lookahead teacher samples candidate chunks from a flow, not a {policy.kind} policy")
     generator = torch.Generator().manual_seed(seed)
     scratch = PushTEnv(render_mode=None)
     scratch.reset(seed=0)
@@ -66,10 +69,11 @@ def collect(model: str, episodes: int, seed: int, candidates: int, num_envs: int
             obs, _ = env.reset(seed=next_seed)
             envs.append({"env": env, "seed": next_seed, "obs": obs, "states": [], "actions": [], "max": 0.0, "steps": 0})
             next_seed += 1
-        states = torch.as_tensor(np.stack([e["obs"] for e in envs]), dtype=torch.float32)
-        noise = torch.randn((len(envs) * candidates, acting.policy.horizon, acting.policy.action_dim), generator=generator)
-        with torch.no_grad():
-            chunks = acting(states.repeat_interleave(candidates, dim=0), noise).numpy().reshape(len(envs), candidates, -1, 2)
+        states = np.stack([e["obs"] for e in envs]).astype(np.float32)
+        # the candidates' noise from one torch stream, as before acting existed: the same seed gives the same teacher
+        noise = torch.randn((len(envs) * candidates, policy.horizon, policy.action_dim), generator=generator).numpy()
+        chunks = policy.act(np.repeat(states, candidates, axis=0), noise=noise)
+        chunks = chunks.reshape(len(envs), candidates, policy.horizon, policy.action_dim)
         for e, options in zip(envs, chunks):
             chunk = options[_best(scratch, e, options)]
             for action in chunk:
