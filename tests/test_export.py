@@ -141,3 +141,36 @@ def test_export_elsewhere_leaves_the_card_alone(tmp_path: Path) -> None:
     out = tmp_path / "elsewhere" / "f.onnx"
     assert main(["--checkpoint", str(tmp_path / "ckpt" / "flow"), "--out", str(out)]) == 0
     assert out.is_file() and load_card(tmp_path / "ckpt" / "flow")["onnx"] is None
+
+
+def test_a_flow_of_16_action_chunks_exports_and_verifies_in_its_own_shapes(tmp_path: Path) -> None:
+    """Shapes come from the checkpoint: state [B, 5], noise and actions [B, 16, 2]; acting's ONNX and torch backends agree."""
+    import acting
+
+    torch.manual_seed(0)
+    norm = {"state_mean": [256.0] * 5, "state_std": [100.0] * 5, "action_mean": [256.0] * 2, "action_std": [100.0] * 2}
+    save_checkpoint(tmp_path / "h16", build_policy("flow", hidden_dims=[16], horizon=16), norm)
+    info = export_onnx(tmp_path / "h16")
+    assert info["num_steps"] == 10 and info["card_updated"] and info["max_abs_diff"] < 1e-3
+    session = ort.InferenceSession(str(tmp_path / "h16.onnx"), providers=["CPUExecutionProvider"])
+    assert {i.name: i.shape[1:] for i in session.get_inputs()} == {"state": [5], "noise": [16, 2]}
+    assert session.get_outputs()[0].shape[1:] == [16, 2]
+    onnx_policy, torch_policy = acting.load_policy(tmp_path / "h16.onnx"), acting.load_policy(tmp_path / "h16")
+    assert onnx_policy.horizon == torch_policy.horizon == 16
+    states = np.array([[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1], [50.0, 60.0, 70.0, 80.0, 5.0]], np.float32)
+    got = onnx_policy.act(states, seeds=[1, 2, 3])
+    assert got.shape == (3, 16, 2)
+    np.testing.assert_allclose(got, torch_policy.act(states, seeds=[1, 2, 3]), atol=1e-3)
+
+
+def test_default_num_steps_is_a_distilled_flows_own_count(tmp_path: Path) -> None:
+    from training.checkpoint import update_card
+    from training.export import default_num_steps
+
+    norm = {"state_mean": [256.0] * 5, "state_std": [100.0] * 5, "action_mean": [256.0] * 2, "action_std": [100.0] * 2}
+    save_checkpoint(tmp_path / "f", build_policy("flow", hidden_dims=[16]), norm)
+    assert default_num_steps(tmp_path / "f") == 10
+    update_card(tmp_path / "f", sampler_steps=2)
+    assert default_num_steps(tmp_path / "f") == default_num_steps(tmp_path / "f.json") == 2
+    with pytest.raises(ValueError, match="num_steps must be >= 1"):
+        export_onnx(tmp_path / "f", num_steps=0)

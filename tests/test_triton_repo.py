@@ -50,3 +50,15 @@ def test_a_config_that_disagrees_with_its_graph_or_the_schema_is_refused(repo: P
     (bad / "config.pbtxt").write_text(text.replace("max_batch_size", "max_batch"))
     with pytest.raises(text_format.ParseError):
         validate_config(bad)
+
+
+def test_config_shapes_come_from_the_card() -> None:
+    """A flow of 16-action chunks (and any state or action width its card names) gets those dims, not 12."""
+    from acting.card import Card
+    from training.triton_repo import config_text
+
+    arch = {"horizon": 16, "state_dim": 7, "action_dim": 3}
+    flow = config_text("h16", Card(Path("h16.json"), {"name": "h16", "kind": "flow", "architecture": arch, "onnx": None}))
+    assert flow.count("dims: [ 16, 3 ]") == 2 and "dims: [ 7 ]" in flow and 'name: "noise"' in flow and "12" not in flow
+    mse = config_text("m", Card(Path("m.json"), {"name": "m", "kind": "mse", "architecture": {}, "onnx": None}))
+    assert mse.count("dims: [ 12, 2 ]") == 1 and "dims: [ 5 ]" in mse and 'name: "noise"' not in mse

@@ -1,11 +1,13 @@
-"""Export checkpoints to ONNX: env-unit `state` [B, 5] (and flow `noise` [B, 12, 2]) in, clipped `actions` [B, 12, 2] out.
+"""Export checkpoints to ONNX: env-unit `state` [B, S] (and flow `noise` [B, H, A]) in, clipped `actions` [B, H, A] out.
 
     python -m training.export                          # models/mse.onnx and models/flow.onnx
     python -m training.export --checkpoint runs/x/final --out /tmp/x.onnx
 
-Normalization, the policy (flow: its Euler steps unrolled), denormalization and clipping are all in
-the graph. Each export is checked with onnx.checker and against the torch ActingPolicy in ONNX
-Runtime, then recorded in the checkpoint's card (`onnx`) when it is written beside the card.
+The shapes are the checkpoint's own (its card's state_dim S, horizon H, action_dim A: 5, 12, 2 for
+every shipped policy). Normalization, the policy (flow: its Euler steps unrolled), denormalization
+and clipping are all in the graph. Each export is checked with onnx.checker and against the torch
+ActingPolicy in ONNX Runtime (`acting.onnx_backend.onnx_session`, the session every ONNX user gets),
+then recorded in the checkpoint's card (`onnx`) when it is written beside the card.
 """
 
 from __future__ import annotations
@@ -22,12 +24,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, load_card, update_card
+from acting import read_card
+from acting.onnx_backend import onnx_session
+from pusht.spec import DEFAULT_NUM_STEPS
+from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, update_card
 from training.cli import HelpFormatter
 from training.policies import ActingPolicy
 
 OPSET = 18
-NUM_STEPS = 10
 # Exported and torch actions must agree to this many pixels on random states (float32 rounding only).
 VERIFY_ATOL = 1e-3
 
@@ -43,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--names", nargs="+", default=["mse", "flow"], help="checkpoint names inside --models-dir")
     parser.add_argument("--checkpoint", default=None, help="export this one checkpoint stem (DIR/NAME) instead; needs --out")
     parser.add_argument("--out", default=None, help="output .onnx path for --checkpoint (default: STEM.onnx; the card records it only if beside the card)")
-    parser.add_argument("--num-steps", type=int, default=None, help=f"flow: Euler steps unrolled into the graph (default: a distilled flow's own count, else {NUM_STEPS})")
+    parser.add_argument("--num-steps", type=int, default=None, help=f"flow: Euler steps unrolled into the graph (default: a distilled flow's own count, else {DEFAULT_NUM_STEPS})")
     parser.add_argument("--triton-repo", default=None, help="write each export as a Triton model repository entry DIR/NAME/1/model.onnx with its config.pbtxt instead")
     parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
     args = parser.parse_args(argv)
@@ -61,12 +65,11 @@ def main(argv: list[str] | None = None) -> int:
     status = 0
     for stem, out in jobs:
         try:
-            steps = args.num_steps or default_num_steps(stem)
-            info = export_onnx(stem, out, num_steps=steps, opset=args.opset)
+            info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset)
             if args.triton_repo is not None:
                 from training.triton_repo import write_config
 
-                print(f"{write_config(out.parent.parent, load_card(stem))}: Triton config (onnxruntime backend, dynamic batching)")
+                print(f"{write_config(out.parent.parent, read_card(stem))}: Triton config (onnxruntime backend, dynamic batching)")
         except (CheckpointError, ValueError, OSError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             status = 2
@@ -77,28 +80,32 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def default_num_steps(stem: str | Path) -> int:
-    """The Euler steps to unroll for a checkpoint: a distilled flow's own count (`sampler_steps`), else NUM_STEPS."""
-    return int(load_card(checkpoint_stem(stem)).get("sampler_steps") or NUM_STEPS)
+    """The Euler steps to unroll for a checkpoint: a distilled flow's own count (`sampler_steps`), else DEFAULT_NUM_STEPS."""
+    return int(read_card(checkpoint_stem(stem)).sampler_steps or DEFAULT_NUM_STEPS)
 
 
-def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int = NUM_STEPS, opset: int = OPSET) -> dict[str, Any]:
+def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int | None = None, opset: int = OPSET) -> dict[str, Any]:
     """Export checkpoint `stem` to `out_path` (default STEM.onnx) and verify it; returns the onnx info (plus max_abs_diff).
+
+    `num_steps=None` unrolls the checkpoint's own count (`default_num_steps`).
 
     The card records the export only when the file lies beside it, where the service looks for it;
     an export elsewhere leaves the card as it was.
     """
     if opset < 17:
         raise ValueError(f"opset must be >= 17, got {opset}")
+    stem = checkpoint_stem(stem)
+    if num_steps is None:
+        num_steps = default_num_steps(stem)
     if num_steps < 1:
         raise ValueError(f"num_steps must be >= 1, got {num_steps}")
-    stem = checkpoint_stem(stem)
     out = Path(out_path) if out_path is not None else stem.with_suffix(".onnx")
     if out.suffix != ".onnx":
         raise ValueError(f"{out}: the output file must end in .onnx")
     acting = load_acting_policy(stem, num_steps=num_steps).eval()
     graph = _GraphModule(acting).eval()
     inputs = ["state", "noise"] if acting.kind == "flow" else ["state"]
-    example = _example_inputs(acting.kind, batch=4, seed=0)
+    example = _example_inputs(acting, batch=4, seed=0)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp.onnx")
     try:
@@ -127,7 +134,6 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
 def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...] = (1, 37)) -> float:
     """Check the ONNX file (onnx.checker, names, dtypes) and its agreement with `acting` in ONNX Runtime; returns the max |diff| in px."""
     import onnx
-    import onnxruntime as ort
 
     path = Path(path)
     model = onnx.load(str(path))
@@ -135,16 +141,14 @@ def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...]
         onnx.checker.check_model(model, full_check=True)
     except onnx.checker.ValidationError as exc:
         raise ValueError(f"{path}: invalid ONNX model: {exc}") from None
-    options = ort.SessionOptions()
-    options.log_severity_level = 3
-    session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    session = onnx_session(path)
     expected_inputs = ["state", "noise"] if acting.kind == "flow" else ["state"]
     names = [i.name for i in session.get_inputs()]
     if names != expected_inputs or [o.name for o in session.get_outputs()] != ["actions"]:
         raise ValueError(f"{path}: inputs {names} / outputs {[o.name for o in session.get_outputs()]}, expected {expected_inputs} / ['actions']")
     worst = 0.0
     for i, batch in enumerate(batches):
-        example = _example_inputs(acting.kind, batch=batch, seed=1000 + i)
+        example = _example_inputs(acting, batch=batch, seed=1000 + i)
         with torch.inference_mode():
             want = acting(*example).numpy()
         got = session.run(["actions"], {name: t.numpy() for name, t in zip(expected_inputs, example)})[0]
@@ -174,12 +178,15 @@ class _GraphModule(torch.nn.Module):
         return self.acting(state, noise) if noise is not None else self.acting(state)
 
 
-def _example_inputs(kind: str, batch: int, seed: int) -> tuple[torch.Tensor, ...]:
-    """Env-unit states spread over the arena (angles in [0, 2π)) and, for flow, standard-normal noise."""
+def _example_inputs(acting: ActingPolicy, batch: int, seed: int) -> tuple[torch.Tensor, ...]:
+    """Env-unit states spread over the arena (the last dimension an angle in [0, 2π)) and, for flow, standard-normal
+    noise, in the checkpoint's own shapes."""
+    policy = acting.policy
     gen = torch.Generator().manual_seed(seed)
-    state = torch.rand(batch, 5, generator=gen) * torch.tensor([512.0, 512.0, 512.0, 512.0, 2 * np.pi])
-    if kind == "flow":
-        return state, torch.randn(batch, 12, 2, generator=gen)
+    scale = torch.tensor([512.0] * (policy.state_dim - 1) + [2 * np.pi])
+    state = torch.rand(batch, policy.state_dim, generator=gen) * scale
+    if acting.kind == "flow":
+        return state, torch.randn(batch, policy.horizon, policy.action_dim, generator=gen)
     return (state,)
 
 

@@ -16,24 +16,25 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from acting.card import Card
+
 __all__ = ["config_text", "validate_config", "write_config"]
 
 MAX_BATCH_SIZE = 1024
 MAX_QUEUE_DELAY_US = 100
 
 
-def write_config(folder: str | Path, card: dict[str, Any]) -> Path:
+def write_config(folder: str | Path, card: Card) -> Path:
     """Write `folder/config.pbtxt` for the policy whose ONNX graph is `folder/1/model.onnx`; the model is named after the folder."""
     path = Path(folder) / "config.pbtxt"
     path.write_text(config_text(Path(folder).name, card))
     return path
 
 
-def config_text(name: str, card: dict[str, Any]) -> str:
-    """The `config.pbtxt` of one policy, shapes from its card's architecture."""
-    arch = card["architecture"]
-    chunk = [arch.get("horizon", 12), arch.get("action_dim", 2)]
-    inputs = [("state", [arch.get("state_dim", 5)])] + ([("noise", chunk)] if card["kind"] == "flow" else [])
+def config_text(name: str, card: Card) -> str:
+    """The `config.pbtxt` of one policy, shapes from its card (`acting.read_card`)."""
+    chunk = [card.horizon, card.action_dim]
+    inputs = [("state", [card.state_dim])] + ([("noise", chunk)] if card.kind == "flow" else [])
 
     def tensor(tensor_name: str, dims: list[int]) -> str:
         return f'  {{\n    name: "{tensor_name}"\n    data_type: TYPE_FP32\n    dims: [ {", ".join(map(str, dims))} ]\n  }}'
