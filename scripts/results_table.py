@@ -9,9 +9,12 @@ so the numbers in models/README.md come from a command. A run shipped as models/
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository's packages, installed or not
+
+from acting import CardError, read_card  # noqa: E402  (the one card reader)
 
 DEFAULT_ARCH_KEYS = ("hidden_dims", "horizon", "action_dim", "state_dim")
 
@@ -28,9 +31,17 @@ def main(argv: list[str] | None = None) -> int:
     if not records:
         print(f"error: no run records (*/last.json) in {args.records_dir}", file=sys.stderr)
         return 2
+    try:
+        return _table(records, models, args.env)
+    except CardError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _table(records: list[Path], models: Path, envs: list[str]) -> int:
     shipped = {}
     for path in models.glob("*.json"):
-        card = json.loads(path.read_text())
+        card = read_card(path).data
         shipped[Path(card.get("run", "")).name] = path.stem
 
     print("| run | kind | changes from the recipe | checkpoint | steps | train time | env "
@@ -41,9 +52,9 @@ def main(argv: list[str] | None = None) -> int:
             path = record / ("last.json" if label == "final" else "best.json")
             if not path.is_file():
                 continue
-            card = json.loads(path.read_text())
+            card = read_card(path).data
             for env, score in (card.get("heldout_evaluation") or {}).items():
-                if env not in args.env:
+                if env not in envs:
                     continue
                 print(
                     f"| {record.name} | {card['kind']} | {_changes(card)} | {label} | {card['steps']:,} "
