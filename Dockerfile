@@ -14,9 +14,11 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 RUN useradd --create-home --uid 10001 --shell /usr/sbin/nologin app
 WORKDIR /app
 
-# Only what the serving extra needs: the env package (chunk_noise) and the service; no training code.
+# Only what the serving extra needs: the env package (seeds, spec), the acting interface (card reader,
+# ONNX Runtime backend) and the service; no training code.
 COPY pyproject.toml README.md ./
 COPY pusht ./pusht
+COPY acting ./acting
 COPY service ./service
 RUN pip install ".[serve]"
 

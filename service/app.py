@@ -1,6 +1,6 @@
 """The FastAPI app: `uvicorn service.app:app` serves every policy in PUSHT_MODELS_DIR.
 
-Assembles the pieces: settings (service.settings), backends (service.backends), dynamic batching
+Assembles the pieces: settings (service.settings), policies (service.backends, on `acting`), dynamic batching
 (service.batching), the /act hot path (service.act), routes (service.routes), ASGI guards
 (service.guard) and metrics (service.metrics). Policies are loaded once in the lifespan; a bad
 setting, card or model file stops startup with one line naming the variable or the file.
@@ -22,7 +22,7 @@ from fastapi.staticfiles import StaticFiles
 from service import protocol
 from service.act import ActFastPath, ActHandler, ServiceError, cap_errors, json_error
 from service.backends import ModelLoadError, load_policies
-from service.batching import Batcher, evaluations
+from service.batching import Batcher
 from service.guard import HeaderLimit, QuietStartupFailure, Refusal
 from service.metrics import Metrics, MetricsMiddleware
 from service.oip import make_oip_router
@@ -63,7 +63,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 max_cost=settings.batch_max_cost,
                 max_wait_s=settings.batch_max_wait_ms / 1000.0,
                 # 32 concurrent connections, each with a full request, must never be shed.
-                queue_limit=max(settings.queue_limit, NEVER_SHED_CONNECTIONS * settings.max_states * evaluations(policy, None)),
+                queue_limit=max(settings.queue_limit, NEVER_SHED_CONNECTIONS * settings.max_states * policy.network_evaluations()),
                 observe=metrics.observe_batch,
             )
         if not protocol.ENTRY_POINT:

@@ -7,9 +7,10 @@ call's rows are shared max-min fairly: requests with few rows left go whole, and
 the rest evenly. When small requests wait beside bulk ones, the next call is short (an eighth of the
 budget) and the next few half size, so a 1-row request waits about half a call however many
 1,024-row batches are queued, while bulk rows still fill the calls (a model's cost per row is flat
-beyond a few dozen rows). Noise is drawn per request (`seed`) or per row (`seeds`) and sliced, and
-every call is padded to a multiple of 4 rows (`pusht.rollout.pad_rows`), so an answer never
-depends, to the last bit, on what else was in the batch. Requests whose client left (their future
+beyond a few dozen rows). Noise is drawn per request (`seed`) or per row (`seeds`) and sliced, in
+the policy's own chunk shape (its card's horizon and action width), and the call is one
+`acting.Policy.act`, which pads it to a multiple of 4 rows (`pusht.seeding.pad_rows`), so an answer
+never depends, to the last bit, on what else was in the batch. Requests whose client left (their future
 is done) are dropped before their rows reach the model. Compute runs in the worker thread (ONNX
 Runtime and torch release the GIL), off the event loop.
 """
@@ -24,10 +25,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from pusht.rollout import chunk_noise, pad_rows, row_noise
-from service.backends import ACTION_DIM, HORIZON, LoadedPolicy
+from acting import Policy
+from pusht.seeding import chunk_noise, row_noise
 
-__all__ = ["Batcher", "Overloaded", "evaluations"]
+__all__ = ["Batcher", "Overloaded"]
 
 BatchObserver = Callable[[str, int, int], None]
 """(policy name, state rows, requests) -> None, called once per model call."""
@@ -35,13 +36,6 @@ BatchObserver = Callable[[str, int, int], None]
 
 class Overloaded(RuntimeError):
     """The policy's queue is full; the request should be retried later."""
-
-
-def evaluations(policy: LoadedPolicy, num_steps: int | None) -> int:
-    """Network evaluations per state row: the flow step count, 1 for mse."""
-    if policy.kind != "flow":
-        return 1
-    return num_steps if num_steps is not None else getattr(policy, "default_num_steps", 1)
 
 
 @dataclass(slots=True, eq=False)
@@ -68,7 +62,7 @@ class Batcher:
 
     def __init__(
         self,
-        policy: LoadedPolicy,
+        policy: Policy,
         max_rows: int = 1024,
         max_wait_s: float = 0.0,
         queue_limit: int = 8192,
@@ -98,18 +92,18 @@ class Batcher:
     async def submit(
         self, states: np.ndarray, seed: int | None = None, num_steps: int | None = None, seeds: Sequence[int] | None = None
     ) -> np.ndarray:
-        """Actions [B, 12, 2] for float32 states [B, 5]; raise Overloaded when the queue is full."""
+        """Actions [B, horizon, action_dim] for float32 states [B, state_dim]; raise Overloaded when the queue is full."""
         return await self.enqueue(states, seed, num_steps, seeds)
 
     def enqueue(
         self, states: np.ndarray, seed: int | None = None, num_steps: int | None = None, seeds: Sequence[int] | None = None,
         noise: np.ndarray | None = None,
     ) -> asyncio.Future:
-        """Queue a request (`noise`: the caller's own flow noise [B, 12, 2]); its future gets the actions; finished early, its rows drop."""
+        """Queue a request (`noise`: the caller's own flow noise [B, horizon, action_dim]); its future gets the actions; finished early, its rows drop."""
         rows = len(states)
         if self._closed:
             raise Overloaded(f"policy {self.policy.name!r} is shutting down")
-        unit = evaluations(self.policy, num_steps)
+        unit = self.policy.network_evaluations(num_steps)
         if self._pending_cost + rows * unit > self.queue_limit:
             raise Overloaded(
                 f"policy {self.policy.name!r} has {self._pending_cost} cost units queued (limit {self.queue_limit}; "
@@ -229,7 +223,7 @@ class Batcher:
         return batch
 
     def _compute(self, batch: list[_Slice]) -> np.ndarray:
-        """Runs on the worker thread: noise per request or row, one concatenated model call."""
+        """Runs on the worker thread: noise per request or row, one concatenated model call (`act` pads it)."""
         policy = self.policy
         if len(batch) == 1:
             item, start, stop = batch[0]
@@ -239,26 +233,25 @@ class Batcher:
         noise = None
         if policy.kind == "flow":
             parts = [self._noise(*part) for part in batch]
-            noise = pad_rows(parts[0] if len(parts) == 1 else np.concatenate(parts))
-        # CPU matrix products round a full group of 4 rows differently (last bit) from a tail of 1-3:
-        # padded calls make each row's actions bitwise independent of its batch (pusht.seeding).
-        actions = policy.act(pad_rows(states), noise, batch[0][0].num_steps)[: len(states)]
+            noise = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        actions = policy.act(states, noise=noise, num_steps=batch[0][0].num_steps)
         if self._observe is not None:
             self._observe(policy.name, len(states), len(batch))
         return actions
 
     def _noise(self, item: _Item, start: int, stop: int) -> np.ndarray:
+        horizon, action_dim = self.policy.horizon, self.policy.action_dim
         if item.noise is not None and item.seed is None:  # the caller's own noise (the OIP `noise` input)
             return item.noise[start:stop]
         if item.seeds is not None:
-            return row_noise(item.seeds[start:stop], HORIZON, ACTION_DIM)
+            return row_noise(item.seeds[start:stop], horizon, action_dim)
         if item.seed is not None:
             if start == 0 and stop == len(item.states):
-                return chunk_noise(item.seed, stop, HORIZON, ACTION_DIM)
+                return chunk_noise(item.seed, stop, horizon, action_dim)
             if item.noise is None:  # a request split over calls: its one draw, sliced
-                item.noise = chunk_noise(item.seed, len(item.states), HORIZON, ACTION_DIM)
+                item.noise = chunk_noise(item.seed, len(item.states), horizon, action_dim)
             return item.noise[start:stop]
-        return self._rng.standard_normal((stop - start, HORIZON, ACTION_DIM), dtype=np.float32)
+        return self._rng.standard_normal((stop - start, horizon, action_dim), dtype=np.float32)
 
     def _finish(self, loop: asyncio.AbstractEventLoop, batch: list[_Slice], fut: asyncio.Future) -> None:
         self._busy = False

@@ -2,8 +2,9 @@
 
 `GET /v2`, `/v2/health/live`, `/v2/health/ready`, `/v2/models/{name}` and `/v2/models/{name}/ready`,
 `POST /v2/models/{name}/infer` (each also under `/versions/1`): input `state` FP32 [B, 5] and, for
-flow, `noise` FP32 [B, 12, 2] or `seeds` INT64 [B] (one per row, as `/act`'s `seeds`) or a `seed`
-request parameter; output `actions` FP32 [B, 12, 2]. Tensors come as JSON `data` or binary (the
+flow, `noise` FP32 [B, H, 2] or `seeds` INT64 [B] (one per row, as `/act`'s `seeds`) or a `seed`
+request parameter; output `actions` FP32 [B, H, 2], H the policy's chunk length (its card's horizon,
+in its model metadata). Tensors come as JSON `data` or binary (the
 `Inference-Header-Content-Length` extension, tritonclient's default). Rows go through the policy's
 Batcher, sharing model calls, key, body and queue limits with `/act`; errors are 4xx JSON with
 `error` (what OIP clients read) and `detail` (as the rest of the API).
@@ -21,7 +22,7 @@ from fastapi.responses import Response
 from pydantic import BaseModel, ValidationError
 
 from service.act import ServiceError, _read_body, await_actions, cap_errors, check_key, request_headers
-from service.backends import LoadedPolicy
+from acting import Policy
 from service.batching import Batcher, Overloaded
 from service.oip_tensors import VERSION, InferRequest, answer, input_tensors, invalid, model_metadata, split_body
 from service.schemas import MAX_SEED
@@ -125,7 +126,7 @@ def make_oip_router(settings: Settings) -> APIRouter:
         return Response(orjson.dumps({"name": name, "ready": True}), media_type="application/json")
 
     @router.post(
-        "/models/{name}/infer", summary="OIP inference: actions FP32 [B, 12, 2] for state FP32 [B, 5]",
+        "/models/{name}/infer", summary="OIP inference: actions FP32 [B, horizon, 2] for state FP32 [B, 5]",
         responses={200: {"content": {"application/json": {}, "application/octet-stream": {}}}, **ERRORS},
     )
     @router.post("/models/{name}/versions/{version}/infer", include_in_schema=False)
@@ -188,7 +189,7 @@ class OipInfer:
         actions = await await_actions(future, batcher, request.receive, len(states))
         return answer(name, req.id, np.ascontiguousarray(actions, dtype=np.float32), binary_out)
 
-    def _parameters(self, req: InferRequest, policy: LoadedPolicy) -> tuple[int | None, int | None, bool]:
+    def _parameters(self, req: InferRequest, policy: Policy) -> tuple[int | None, int | None, bool]:
         """(seed, num_steps, binary output) from the request and output parameters."""
         params = dict(req.parameters)
         seed, num_steps = params.pop("seed", None), params.pop("num_steps", None)

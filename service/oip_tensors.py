@@ -16,7 +16,7 @@ from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt
 
 from service.act import ServiceError
-from service.backends import ACTION_DIM, HORIZON, STATE_DIM, LoadedPolicy
+from acting import Policy
 from service.schemas import MAX_SEED
 from service.settings import STATE_LIMIT
 
@@ -60,15 +60,15 @@ def invalid(loc: list[Any], msg: str) -> ServiceError:
     return ServiceError(422, [{"loc": loc, "msg": msg, "type": "value_error"}])
 
 
-def model_metadata(name: str, policy: LoadedPolicy) -> dict[str, Any]:
-    """The OIP model metadata: inputs and outputs with -1 for the batch dimension."""
-    inputs = [{"name": "state", "datatype": "FP32", "shape": [-1, STATE_DIM]}]
+def model_metadata(name: str, policy: Policy) -> dict[str, Any]:
+    """The OIP model metadata: inputs and outputs in the policy's card shapes, with -1 for the batch dimension."""
+    chunk = [-1, policy.horizon, policy.action_dim]
+    inputs = [{"name": "state", "datatype": "FP32", "shape": [-1, policy.state_dim]}]
     if policy.kind == "flow":
-        inputs += [{"name": "noise", "datatype": "FP32", "shape": [-1, HORIZON, ACTION_DIM]},
-                   {"name": "seeds", "datatype": "INT64", "shape": [-1]}]
+        inputs += [{"name": "noise", "datatype": "FP32", "shape": chunk}, {"name": "seeds", "datatype": "INT64", "shape": [-1]}]
     return {
         "name": name, "versions": [VERSION], "platform": PLATFORMS.get(policy.backend, policy.backend),
-        "inputs": inputs, "outputs": [{"name": "actions", "datatype": "FP32", "shape": [-1, HORIZON, ACTION_DIM]}],
+        "inputs": inputs, "outputs": [{"name": "actions", "datatype": "FP32", "shape": chunk}],
     }
 
 
@@ -81,7 +81,7 @@ def split_body(body: bytes, header_length: str | None) -> tuple[bytes, bytes]:
     return body[: int(header_length)], body[int(header_length):]
 
 
-def input_tensors(req: InferRequest, tail: bytes, policy: LoadedPolicy, max_states: int) -> dict[str, np.ndarray]:
+def input_tensors(req: InferRequest, tail: bytes, policy: Policy, max_states: int) -> dict[str, np.ndarray]:
     """The request's input tensors by name, with datatype, shape, size and values checked."""
     expected = {t["name"]: t for t in model_metadata(policy.name, policy)["inputs"]}
     out: dict[str, np.ndarray] = {}
@@ -123,7 +123,7 @@ def input_tensors(req: InferRequest, tail: bytes, policy: LoadedPolicy, max_stat
     if offset != len(tail):
         raise ServiceError(400, f"{len(tail) - offset} bytes of binary data follow the header that no input claims")
     if "state" not in out:
-        raise invalid(["inputs"], "the input `state` (FP32 [B, 5]) is required")
+        raise invalid(["inputs"], f"the input `state` (FP32 [B, {policy.state_dim}]) is required")
     return out
 
 

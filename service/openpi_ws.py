@@ -2,7 +2,8 @@
 
 On connect the server sends its metadata (policy, kind, horizon, action and state dimensions); each
 binary msgpack-numpy message `{"state": float32[5], "seed"?, "num_steps"?}` is answered with
-`{"actions": float32[12, 2], "server_timing": {"infer_ms", "prev_total_ms"}}`. Rows go through the
+`{"actions": float32[horizon, 2], "server_timing": {"infer_ms", "prev_total_ms"}}`, horizon the policy's
+chunk length (its card's, in the metadata). Rows go through the
 policy's Batcher, so concurrent connections share model calls with `/act`. A bad message gets a text
 frame (openpi-client raises it as an error) and the connection stays open. With PUSHT_API_KEY set
 the handshake needs `Authorization: Api-Key KEY` (as openpi sends it), `X-API-Key` or a bearer token.
@@ -22,7 +23,6 @@ from fastapi import APIRouter, WebSocket
 from fastapi.responses import Response
 
 from service.act import ServiceError, request_headers
-from service.backends import ACTION_DIM, HORIZON, STATE_DIM
 from service.batching import Batcher, Overloaded
 from service.schemas import MAX_SEED
 from service.settings import STATE_LIMIT, Settings
@@ -122,8 +122,9 @@ def metadata(batcher: Batcher) -> dict[str, Any]:
     """What the server sends on connect."""
     policy = batcher.policy
     return {
-        "policy": policy.name, "kind": policy.kind, "backend": policy.backend, "state_dim": STATE_DIM,
-        "horizon": HORIZON, "action_dim": ACTION_DIM, "num_steps": policy.default_num_steps if policy.kind == "flow" else None,
+        "policy": policy.name, "kind": policy.kind, "backend": policy.backend, "state_dim": policy.state_dim,
+        "horizon": policy.horizon, "action_dim": policy.action_dim,
+        "num_steps": policy.default_num_steps if policy.kind == "flow" else None,
         "keys": list(KEYS),
     }
 
@@ -157,7 +158,7 @@ async def _deny(websocket: WebSocket, exc: ServiceError) -> None:
 
 
 async def _act(batcher: Batcher, message: dict[str, Any], max_bytes: int) -> dict[str, Any]:
-    """`{"actions": float32[12, 2]}` for one message; BadMessage for a bad one."""
+    """`{"actions": float32[horizon, action_dim]}` for one message; BadMessage for a bad one."""
     data = message.get("bytes")
     if data is None:
         raise BadMessage(400, "send observations as binary msgpack-numpy frames (openpi-client's format), not text")
@@ -166,20 +167,21 @@ async def _act(batcher: Batcher, message: dict[str, Any], max_bytes: int) -> dic
     obs = unpack(data)
     policy = batcher.policy
     if not isinstance(obs, dict):
-        raise BadMessage(422, f"a message must be a map like {{'state': float32[5]}}, got {type(obs).__name__}")
+        raise BadMessage(422, f"a message must be a map like {{'state': float32[{policy.state_dim}]}}, got {type(obs).__name__}")
     if "prev_state" in obs:
         raise BadMessage(422, f"policy {policy.name!r} takes no prev_state; send 'state' only")
     unknown = sorted(map(str, set(obs) - set(KEYS)))
     if unknown:
         raise BadMessage(422, f"unknown keys {unknown}; a message takes {list(KEYS)}")
     if "state" not in obs:
-        raise BadMessage(422, "the message has no 'state' (float32[5]: agent x, y, block x, y, angle)")
+        raise BadMessage(422, f"the message has no 'state' (float32[{policy.state_dim}]: agent x, y, block x, y, angle)")
     try:
         state = np.asarray(obs["state"])
     except ValueError:  # ragged nested lists
         state = np.asarray(None)
-    if state.shape != (STATE_DIM,) or state.dtype.kind not in "fiu":
-        raise BadMessage(422, f"'state' must be 5 numbers (float32[5]), got shape {list(state.shape)} of {state.dtype}")
+    if state.shape != (policy.state_dim,) or state.dtype.kind not in "fiu":
+        raise BadMessage(422, f"'state' must be {policy.state_dim} numbers (float32[{policy.state_dim}]), "
+                         f"got shape {list(state.shape)} of {state.dtype}")
     state = state.astype(np.float32)
     if not (np.isfinite(state).all() and (np.abs(state) <= STATE_LIMIT).all()):
         raise BadMessage(422, f"'state' values must be finite and within +-{STATE_LIMIT:g}")

@@ -81,20 +81,22 @@ def make_router(settings: Settings, handler: "ActHandler | None" = None) -> APIR
 
     @router.get("/policies", response_model=PoliciesResponse, responses={k: errors[k] for k in (401, 503)})
     async def policies(request: Request, _: None = Security(require_api_key)) -> PoliciesResponse:
-        """The loaded policies with their parameter counts and evaluation results (from the cards)."""
+        """The loaded policies with their chunk shapes, parameter counts and evaluation results (from the cards)."""
         service: ServiceState = request.app.state.service
         if not service.ready:
             raise ServiceError(503, "policies are still loading", {"Retry-After": "1"})
         infos = []
         for name, policy in sorted(service.policies.items()):
-            card = policy.card
+            card = policy.card.data
             infos.append(
                 PolicyInfo(
                     name=name,
                     kind=policy.kind,
+                    horizon=policy.horizon,
+                    action_dim=policy.action_dim,
                     num_parameters=card.get("num_parameters"),
                     num_steps=policy.default_num_steps if policy.kind == "flow" else None,
-                    network_evaluations=policy.default_num_steps if policy.kind == "flow" else 1,
+                    network_evaluations=policy.network_evaluations(),
                     steps=card.get("steps"),
                     evaluation=card.get("evaluation"),
                     heldout_evaluation=card.get("heldout_evaluation"),

@@ -22,6 +22,7 @@ from pydantic import (
     model_validator,
 )
 
+from pusht.spec import STATE_DIM
 from service.settings import MAX_NUM_STEPS, STATE_LIMIT
 
 __all__ = ["ActRequestBase", "ActResponse", "PolicyInfo", "PoliciesResponse", "act_request_model"]
@@ -31,7 +32,7 @@ MAX_SEED = 2**63 - 1
 StateValue = Annotated[StrictFloat, Field(ge=-STATE_LIMIT, le=STATE_LIMIT, allow_inf_nan=False)]
 State = Annotated[
     list[StateValue],
-    Len(5, 5),
+    Len(STATE_DIM, STATE_DIM),
     Field(description="[agent_x, agent_y, block_x, block_y, block_angle] in env units (pixels, radians)"),
 ]
 Seed = Annotated[StrictInt, Field(ge=0, le=MAX_SEED)]
@@ -53,7 +54,7 @@ class ActRequestBase(BaseModel):
     )
 
     policy: str = Field(min_length=1, max_length=200, description="name of a loaded policy (see GET /policies)")
-    state: State | None = Field(None, description="one state; the answer is one chunk [12, 2]")
+    state: State | None = Field(None, description="one state; the answer is one chunk [horizon, action_dim] (the policy's, see GET /policies)")
     seed: StrictInt | None = Field(
         None, ge=0, le=MAX_SEED,
         description=(
@@ -72,7 +73,7 @@ class ActRequestBase(BaseModel):
         has_state = self.state is not None
         has_states = getattr(self, "states", None) is not None
         if has_state == has_states:
-            raise ValueError("give exactly one of 'state' (one state of 5 numbers) or 'states' (a list of them)")
+            raise ValueError(f"give exactly one of 'state' (one state of {STATE_DIM} numbers) or 'states' (a list of them)")
         seeds = getattr(self, "seeds", None)
         if seeds is not None:
             if has_state:
@@ -91,7 +92,7 @@ def act_request_model(max_states: int) -> type[ActRequestBase]:
     """The `POST /act` body model with `states` limited to `max_states` entries."""
     states_type = Annotated[
         list[State],
-        Field(min_length=1, max_length=max_states, description=f"a batch of 1..{max_states} states; the answer is [B, 12, 2]"),
+        Field(min_length=1, max_length=max_states, description=f"a batch of 1..{max_states} states; the answer is [B, horizon, action_dim]"),
     ]
     seeds_type = Annotated[
         list[Seed],
@@ -113,7 +114,9 @@ def act_request_model(max_states: int) -> type[ActRequestBase]:
 
 
 class ActResponse(BaseModel):
-    """Actions in env units, clipped to [0, 512]: [12, 2] for `state`, [B, 12, 2] for `states`."""
+    """Actions in env units, clipped to [0, 512]: [horizon, action_dim] for `state`, [B, horizon, action_dim] for `states`.
+
+    horizon and action_dim are the policy's, from its card (GET /policies lists them)."""
 
     policy: str
     kind: str = Field(description="mse or flow")
@@ -127,6 +130,8 @@ class PolicyInfo(BaseModel):
     name: str
     kind: str
     num_parameters: int | None = None
+    horizon: int = Field(description="actions per chunk: every answer of this policy is [horizon, action_dim] per state")
+    action_dim: int = Field(description="numbers per action (the agent's target x, y)")
     num_steps: int | None = Field(None, description="flow Euler steps of the exported graph")
     network_evaluations: int = Field(description="network passes per chunk at the default settings: flow's Euler steps, mse's 1")
     steps: int | None = Field(None, description="training steps")

@@ -9,13 +9,13 @@ from typing import Literal
 from pydantic import Field, SecretStr, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from acting.card import MAX_NUM_STEPS
+
 __all__ = ["MAX_NUM_STEPS", "STATE_LIMIT", "Settings", "SettingsError", "get_settings", "load_settings"]
 
 STATE_LIMIT = 1e4
 """Largest plausible |state value|: env states are pixels in 0..512 and an angle; far beyond is a client bug."""
-
-MAX_NUM_STEPS = 100
-"""Most flow Euler steps a request may ask for."""
+# MAX_NUM_STEPS (acting.card): the most flow Euler steps a request may ask for.
 
 
 class SettingsError(ValueError):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from service.backends import LoadedPolicy
+from acting import Policy
 from service.batching import Batcher
 from service.metrics import Metrics
 from service.settings import Settings
@@ -16,6 +16,6 @@ class ServiceState:
 
     settings: Settings
     metrics: Metrics
-    policies: dict[str, LoadedPolicy] = field(default_factory=dict)
+    policies: dict[str, Policy] = field(default_factory=dict)
     batchers: dict[str, Batcher] = field(default_factory=dict)
     ready: bool = False

@@ -1,9 +1,9 @@
 """One viewer episode: the project's env, stepped by a policy's chunks or a human's pointer, and recorded.
 
 The policy side follows `pusht.rollout.run_episodes` exactly (reset with the episode seed, decision d
-asks with request seed `decision_seed(seed, d)`, each chunk run open loop for 12 steps, the episode
-ends on success, truncation or 300 steps), so a pure policy episode scores what `training.evaluate`
-scores on that seed. A human's step drops the rest of the current chunk; the policy's next step then
+asks with request seed `decision_seed(seed, d)`, each chunk run open loop to its end, as long as the
+policy's card makes it, the episode ends on success, truncation or 300 steps), so a pure policy episode
+scores what `training.evaluate` scores on that seed at its default action horizon (the whole chunk). A human's step drops the rest of the current chunk; the policy's next step then
 asks afresh. `save_episode` writes the recording in the dataset's zarr layout, with numpy only (the
 service does not depend on zarr or on training.data).
 """
@@ -22,12 +22,10 @@ import numpy as np
 
 from pusht.env import MAX_EPISODE_STEPS, PushTEnv
 from pusht.geometry import GOAL_POSE, tee_polygons
-from pusht.rollout import SUCCESS_COVERAGE, decision_seed
+from pusht.seeding import decision_seed
+from pusht.spec import ACTION_HIGH, ACTION_LOW, SUCCESS_COVERAGE
 
-__all__ = ["ACTION_HORIZON", "Episode", "goal_polygons", "save_episode"]
-
-ACTION_HORIZON = 12
-"""Actions of each chunk executed open loop, as `training.evaluate`'s default."""
+__all__ = ["Episode", "goal_polygons", "save_episode"]
 
 
 def goal_polygons() -> list[list[list[float]]]:
@@ -61,8 +59,8 @@ class Episode:
         self.last_action: list[float] | None = None
 
     def needs_chunk(self) -> bool:
-        """Whether the policy's next step needs a new chunk (none left of the current one)."""
-        return self.chunk is None or self.chunk_index >= ACTION_HORIZON
+        """Whether the policy's next step needs a new chunk (none left of the current one: every chunk runs to its end)."""
+        return self.chunk is None or self.chunk_index >= len(self.chunk)
 
     def next_request(self) -> tuple[np.ndarray, int]:
         """The state [1, 5] float32 and request seed of the next policy decision (counts the decision)."""
@@ -71,7 +69,7 @@ class Episode:
         return self.obs[None].astype(np.float32), seed
 
     def set_chunk(self, chunk: np.ndarray) -> None:
-        """The policy's answer [12, 2] for the decision just requested."""
+        """The policy's answer [horizon, 2] for the decision just requested."""
         self.chunk, self.chunk_index = np.asarray(chunk, dtype=np.float32), 0
 
     def step(self, human_action: tuple[float, float] | None = None) -> dict[str, Any]:
@@ -79,7 +77,7 @@ class Episode:
         if self.done:
             raise ValueError("the episode is over: start a new one")
         if human_action is not None:
-            action = np.clip(np.asarray(human_action, dtype=np.float32), 0, 512)
+            action = np.clip(np.asarray(human_action, dtype=np.float32), ACTION_LOW, ACTION_HIGH)
             self.chunk = None  # the human took over: the policy asks afresh when it gets control back
         else:
             if self.needs_chunk():

@@ -15,6 +15,12 @@ def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return cached_test_models(tmp_path_factory.getbasetemp())
 
 
+@pytest.fixture(scope="session")
+def horizon16_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Random-weight mse and flow policies whose cards say 16-action chunks (not the default 12)."""
+    return cached_test_models(tmp_path_factory.getbasetemp(), horizon=16)
+
+
 @pytest.fixture(scope="module", params=["test", "shipped"], ids=["test-models", "shipped-models"])
 def server(request: pytest.FixtureRequest):
     """A real uvicorn on 127.0.0.1 serving the random test models, then the shipped models/ (if present)."""

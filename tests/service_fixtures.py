@@ -26,8 +26,8 @@ NORMALIZATION = {
 }
 
 
-def build_test_models(models_dir: Path, hidden_dims: tuple[int, ...] = (64, 64)) -> Path:
-    """Write random-weight `mse` and `flow` policies (safetensors, card, ONNX) into `models_dir`."""
+def build_test_models(models_dir: Path, hidden_dims: tuple[int, ...] = (64, 64), horizon: int = 12) -> Path:
+    """Write random-weight `mse` and `flow` policies (safetensors, card, ONNX) of `horizon`-action chunks into `models_dir`."""
     import torch
 
     from training.checkpoint import save_checkpoint
@@ -37,18 +37,18 @@ def build_test_models(models_dir: Path, hidden_dims: tuple[int, ...] = (64, 64))
     models_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(0)
     for kind in ("mse", "flow"):
-        policy = build_policy(kind, hidden_dims=list(hidden_dims), dropout=0.0).eval()
+        policy = build_policy(kind, hidden_dims=list(hidden_dims), dropout=0.0, horizon=horizon).eval()
         save_checkpoint(models_dir / kind, policy, NORMALIZATION, steps=0, git_commit="test", evaluation=None)
         export_onnx(models_dir / kind)
     return models_dir
 
 
-def cached_test_models(base: Path) -> Path:
-    """`build_test_models` into BASE/service-models once per pytest session (shared by the service test modules)."""
-    models_dir = base / "service-models"
+def cached_test_models(base: Path, horizon: int = 12) -> Path:
+    """`build_test_models` into BASE/service-models (-hH for another horizon) once per pytest session (shared by the service tests)."""
+    models_dir = base / ("service-models" if horizon == 12 else f"service-models-h{horizon}")
     done = models_dir / ".complete"
     if not done.is_file():
-        build_test_models(models_dir)
+        build_test_models(models_dir, (64, 64) if horizon == 12 else (32,), horizon=horizon)
         done.touch()
     return models_dir
 

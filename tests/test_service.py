@@ -51,27 +51,89 @@ def act(url: str, timeout: float = 10.0, **body) -> httpx.Response:
 
 def test_onnx_and_torch_backends_agree(test_models: Path) -> None:
     """The exported graph and the torch checkpoint give the same actions for the same states and noise."""
-    from service.backends import OnnxPolicy, TorchPolicy, read_card
+    from acting import load_policy
 
     rng = np.random.default_rng(0)
     states = np.column_stack([rng.uniform(0, 512, (37, 4)), rng.uniform(0, 2 * np.pi, 37)]).astype(np.float32)
     noise = chunk_noise(7, 37)
     for name in ("mse", "flow"):
         card_path = test_models / f"{name}.json"
-        onnx_policy = OnnxPolicy(card_path, read_card(card_path))
-        torch_policy = TorchPolicy(card_path, read_card(card_path))
-        a = onnx_policy.act(states, noise if name == "flow" else None, None)
-        b = torch_policy.act(states, noise if name == "flow" else None, None)
+        onnx_policy = load_policy(card_path, backend="onnx")
+        torch_policy = load_policy(card_path, backend="torch")
+        assert (onnx_policy.backend, torch_policy.backend) == ("onnx", "torch")
+        assert onnx_policy.horizon == torch_policy.horizon == 12 and onnx_policy.action_dim == 2
+        a = onnx_policy.act(states, noise=noise if name == "flow" else None)
+        b = torch_policy.act(states, noise=noise if name == "flow" else None)
         assert a.shape == b.shape == (37, 12, 2)
         np.testing.assert_allclose(a, b, atol=1e-3, rtol=0)
         assert a.min() >= 0.0 and a.max() <= 512.0
     # torch honors other step counts; onnx refuses them with a reason
-    flow_torch = TorchPolicy(test_models / "flow.json", read_card(test_models / "flow.json"))
-    three = flow_torch.act(states, noise, 3)
-    assert not np.allclose(three, flow_torch.act(states, noise, 10))
+    flow_torch = load_policy(test_models / "flow.json", backend="torch")
+    three = flow_torch.act(states, noise=noise, num_steps=3)
+    assert not np.allclose(three, flow_torch.act(states, noise=noise, num_steps=10))
     assert flow_torch.check_num_steps(3) is None
-    assert "onnx backend" in OnnxPolicy(test_models / "flow.json", read_card(test_models / "flow.json")).check_num_steps(3)
+    assert "onnx backend" in load_policy(test_models / "flow.json", backend="onnx").check_num_steps(3)
 
+
+
+def test_every_shape_comes_from_the_card(horizon16_models: Path) -> None:
+    """Cards of 16-action chunks: /act, /policies, OIP v2, openpi metadata, the batcher and the viewer all use 16."""
+    from fastapi.testclient import TestClient
+
+    from acting import load_policy
+    from pusht.rollout import decision_seed, row_noise
+    from service.app import create_app
+    from service.openpi_ws import pack, unpack
+    from service.settings import Settings
+    from service.viewer_episode import Episode
+
+    flow = load_policy(horizon16_models / "flow.json", backend="onnx")
+    assert (flow.horizon, flow.action_dim) == (16, 2)
+    with TestClient(create_app(Settings(models_dir=horizon16_models, max_states=64))) as client:
+        listing = {p["name"]: p for p in client.get("/policies").json()["policies"]}
+        assert {name: (p["horizon"], p["action_dim"]) for name, p in listing.items()} == {"flow": (16, 2), "mse": (16, 2)}
+        assert (listing["flow"]["network_evaluations"], listing["mse"]["network_evaluations"]) == (10, 1)
+        one = client.post("/act", json={"policy": "flow", "state": STATE, "seed": 3})
+        assert one.status_code == 200, one.text
+        assert np.asarray(one.json()["actions"]).shape == (16, 2)
+        many = client.post("/act", json={"policy": "flow", "states": STATES, "seeds": [7, 8, 9]}).json()["actions"]
+        expected = flow.act(np.asarray(STATES, np.float32), noise=row_noise([7, 8, 9], 16, 2))
+        np.testing.assert_allclose(np.asarray(many, np.float32), expected, atol=1e-4, rtol=0)
+        whole = client.post("/act", json={"policy": "flow", "states": STATES, "seed": 5}).json()["actions"]
+        np.testing.assert_allclose(np.asarray(whole, np.float32), flow.act(np.asarray(STATES, np.float32), noise=chunk_noise(5, 3, 16, 2)),
+                                   atol=1e-4, rtol=0)
+        assert np.asarray(client.post("/act", json={"policy": "mse", "states": STATES}).json()["actions"]).shape == (3, 16, 2)
+
+        meta = client.get("/v2/models/flow").json()
+        assert {t["name"]: t["shape"] for t in meta["inputs"]} == {"state": [-1, 5], "noise": [-1, 16, 2], "seeds": [-1]}
+        assert meta["outputs"] == [{"name": "actions", "datatype": "FP32", "shape": [-1, 16, 2]}]
+        noise = np.random.default_rng(0).standard_normal((2, 16, 2)).astype(np.float32)
+        infer = client.post("/v2/models/flow/infer", json={"inputs": [
+            {"name": "state", "datatype": "FP32", "shape": [2, 5], "data": STATES[:2]},
+            {"name": "noise", "datatype": "FP32", "shape": [2, 16, 2], "data": noise.ravel().tolist()}]}).json()
+        assert infer["outputs"][0]["shape"] == [2, 16, 2]
+        np.testing.assert_allclose(np.asarray(infer["outputs"][0]["data"], np.float32).reshape(2, 16, 2),
+                                   flow.act(np.asarray(STATES[:2], np.float32), noise=noise), atol=1e-4, rtol=0)
+        twelve = client.post("/v2/models/flow/infer", json={"inputs": [
+            {"name": "state", "datatype": "FP32", "shape": [1, 5], "data": STATE},
+            {"name": "noise", "datatype": "FP32", "shape": [1, 12, 2], "data": [0.0] * 24}]})
+        assert twelve.status_code == 422 and "[B, 16, 2]" in twelve.json()["error"]
+
+        with client.websocket_connect("/openpi/flow") as ws:
+            hello = unpack(ws.receive_bytes())
+            assert (hello["horizon"], hello["action_dim"], hello["state_dim"]) == (16, 2, 5)
+            ws.send_bytes(pack({"state": np.asarray(STATE, np.float32), "seed": 3}))
+            np.testing.assert_array_equal(unpack(ws.receive_bytes())["actions"], np.asarray(one.json()["actions"], np.float32))
+
+    # the viewer runs each chunk whole: 16 env steps per policy decision
+    episode = Episode(200000, "flow", max_steps=40)
+    while not episode.done:
+        if episode.needs_chunk():
+            states, seed = episode.next_request()
+            assert seed == decision_seed(200000, episode.decisions - 1)
+            episode.set_chunk(flow.act(states, seeds=[seed])[0])
+        episode.step()
+    assert (episode.length, episode.decisions) == (40, 3)  # chunks of 16, 16, 8
 
 
 # ---- a real server --------------------------------------------------------------------------------
@@ -92,6 +154,7 @@ def test_act_shapes_ranges_and_policies(server: UvicornProcess) -> None:
     kinds = {p["name"]: p["kind"] for p in listing["policies"]}
     assert kinds["flow"] == "flow" and kinds["mse"] == "mse"
     assert all(p["num_parameters"] > 0 for p in listing["policies"])
+    assert all((p["horizon"], p["action_dim"]) == (12, 2) for p in listing["policies"])  # the cards' chunk shape
     assert httpx.get(f"{server.url}/healthz").json() == {"status": "alive"}
     assert httpx.get(f"{server.url}/readyz").status_code == 200
     assert httpx.get(f"{server.url}/docs").status_code == 200
@@ -101,7 +164,7 @@ def test_act_shapes_ranges_and_policies(server: UvicornProcess) -> None:
 @pytest.mark.slow
 def test_seeds_are_deterministic_and_match_chunk_noise(server: UvicornProcess) -> None:
     """Same seed -> same actions, equal to the policy run in process on chunk_noise(seed, B)."""
-    from service.backends import OnnxPolicy, read_card
+    from acting import load_policy
 
     a = act(server.url, policy="flow", states=STATES, seed=42).json()["actions"]
     b = act(server.url, policy="flow", states=STATES, seed=42).json()["actions"]
@@ -109,8 +172,8 @@ def test_seeds_are_deterministic_and_match_chunk_noise(server: UvicornProcess) -
     assert a == b and a != c
     fresh = [act(server.url, policy="flow", state=STATE).json()["actions"] for _ in range(2)]
     assert fresh[0] != fresh[1], "without a seed the noise must be fresh"
-    policy = OnnxPolicy(server.models_dir / "flow.json", read_card(server.models_dir / "flow.json"))
-    expected = policy.act(np.asarray(STATES, np.float32), chunk_noise(42, len(STATES)), None)
+    policy = load_policy(server.models_dir / "flow.json", backend="onnx")
+    expected = policy.act(np.asarray(STATES, np.float32), noise=chunk_noise(42, len(STATES)))
     np.testing.assert_allclose(np.asarray(a, dtype=np.float32), expected, atol=1e-4, rtol=0)
     # mse accepts a seed and ignores it
     m1 = act(server.url, policy="mse", state=STATE, seed=5).json()["actions"]

@@ -18,10 +18,10 @@ STATES = [[120.0, 300.0, 256.0, 250.0, 1.0], [400.5, 80.25, 200.0, 310.0, 5.5], 
 
 def test_batcher_merges_and_keeps_each_request_seed(test_models: Path) -> None:
     """Concurrent submits share model calls, yet each answer equals the same request run alone."""
-    from service.backends import OnnxPolicy, read_card
+    from acting import load_policy
     from service.batching import Batcher
 
-    policy = OnnxPolicy(test_models / "flow.json", read_card(test_models / "flow.json"))
+    policy = load_policy(test_models / "flow.json", backend="onnx")
     calls: list[tuple[int, int]] = []
     states = [np.asarray([STATES[i % 3]], dtype=np.float32) for i in range(40)]
 
@@ -36,7 +36,7 @@ def test_batcher_merges_and_keeps_each_request_seed(test_models: Path) -> None:
     assert sum(reqs for _, reqs in calls) == 40
     assert len(calls) < 40 and max(rows for rows, _ in calls) <= 16
     for i, got in enumerate(merged):
-        alone = policy.act(states[i], chunk_noise(1000 + i, 1), None)
+        alone = policy.act(states[i], noise=chunk_noise(1000 + i, 1))
         # not bitwise: GEMM kernels may sum in another order for another batch size; a wrong noise
         # row would move actions by pixels
         np.testing.assert_allclose(got, alone, atol=1e-4, rtol=0)
@@ -46,10 +46,10 @@ def test_batcher_waits_only_under_load_and_never_past_a_full_batch(test_models: 
     """max_wait applies once calls merge several requests; a full batch goes at once; a lone client never waits."""
     import time
 
-    from service.backends import OnnxPolicy, read_card
+    from acting import load_policy
     from service.batching import Batcher
 
-    policy = OnnxPolicy(test_models / "mse.json", read_card(test_models / "mse.json"))
+    policy = load_policy(test_models / "mse.json", backend="onnx")
     rows = np.full((8, 5), 256.0, dtype=np.float32)
 
     async def run() -> list[float]:
@@ -76,9 +76,15 @@ def test_batcher_answers_in_order_and_passes_model_errors_on() -> None:
     from service.batching import Batcher
 
     class Flaky:
-        name, kind = "flaky", "mse"
+        """Just the part of `acting.Policy` the batcher uses."""
 
-        def act(self, states, noise, num_steps):
+        name, kind, horizon, action_dim = "flaky", "mse", 12, 2
+
+        def network_evaluations(self, num_steps=None):
+            return 1
+
+        def act(self, states, prev_states=None, *, noise=None, num_steps=None):
+            assert prev_states is None and noise is None and num_steps is None  # mse: states only
             if states[0, 0] < 0:
                 raise RuntimeError("model call failed")
             return np.repeat(states[:, None, :2], 12, axis=1)
@@ -101,10 +107,10 @@ def test_batcher_answers_in_order_and_passes_model_errors_on() -> None:
 
 def test_batcher_sheds_load_beyond_its_queue_limit(test_models: Path) -> None:
     """Rows beyond queue_limit waiting at once are refused with Overloaded (-> 503); the rest are answered."""
-    from service.backends import OnnxPolicy, read_card
+    from acting import load_policy
     from service.batching import Batcher, Overloaded
 
-    policy = OnnxPolicy(test_models / "mse.json", read_card(test_models / "mse.json"))
+    policy = load_policy(test_models / "mse.json", backend="onnx")
     five = np.full((5, 5), 256.0, dtype=np.float32)
 
     async def run() -> list:

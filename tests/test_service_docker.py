@@ -81,6 +81,7 @@ def test_dockerignore_keeps_checkpoints_and_caches_out() -> None:
     assert not is_ignored(Path("models/flow.json"), patterns)
     assert not is_ignored(Path("service/app.py"), patterns)
     assert not is_ignored(Path("pusht/rollout.py"), patterns)
+    assert not is_ignored(Path("acting/policy.py"), patterns)
 
 
 def test_dockerfile_has_what_the_image_needs() -> None:
@@ -98,6 +99,9 @@ def test_dockerfile_has_what_the_image_needs() -> None:
     # python -m service: uvicorn with the connection limits (header deadline, caps, bounded shutdown)
     assert json.loads(by_kind["CMD"][0]) == ["python", "-m", "service", "--host", "0.0.0.0", "--port", "8000"]
     assert any(a.startswith("models") for a in by_kind["COPY"])
+    # the service loads every policy through the acting package (card reader, ONNX Runtime backend)
+    copied = {shlex.split(a)[0] for a in by_kind["COPY"]}
+    assert {"pusht", "acting", "service"} <= copied, copied
 
 
 @pytest.mark.slow

@@ -28,10 +28,10 @@ def _shipped() -> Path:
 
 def test_a_small_request_waits_one_call_behind_bulk_batches(test_models: Path) -> None:
     """Eight queued 256-row requests, then a 1-row one: it is answered by the next call; bulk rows still fill every call."""
-    from service.backends import OnnxPolicy, read_card
+    from acting import load_policy
     from service.batching import Batcher
 
-    policy = OnnxPolicy(test_models / "flow.json", read_card(test_models / "flow.json"))
+    policy = load_policy(test_models / "flow.json", backend="onnx")
     calls: list[tuple[int, int]] = []
     finished_at: dict[str, int] = {}
 
@@ -63,12 +63,12 @@ def test_a_small_request_waits_one_call_behind_bulk_batches(test_models: Path) -
 
 def test_queue_limits_count_rows_times_network_evaluations(test_models: Path) -> None:
     """A flow row costs its num_steps; an mse row 1: the same rows fit one queue and overflow the other."""
-    from service.backends import OnnxPolicy, read_card
-    from service.batching import Batcher, Overloaded, evaluations
+    from acting import load_policy
+    from service.batching import Batcher, Overloaded
 
-    flow = OnnxPolicy(test_models / "flow.json", read_card(test_models / "flow.json"))
-    mse = OnnxPolicy(test_models / "mse.json", read_card(test_models / "mse.json"))
-    assert (evaluations(flow, None), evaluations(flow, 100), evaluations(mse, 100)) == (10, 100, 1)
+    flow = load_policy(test_models / "flow.json", backend="onnx")
+    mse = load_policy(test_models / "mse.json", backend="onnx")
+    assert (flow.network_evaluations(None), flow.network_evaluations(100), mse.network_evaluations(100)) == (10, 100, 1)
     five = np.full((5, 5), 256.0, dtype=np.float32)
 
     async def run(policy) -> list:

@@ -28,7 +28,7 @@ def act(url: str, **body) -> httpx.Response:
 
 @pytest.mark.slow
 def test_row_i_equals_a_single_request_with_seeds_i(server: UvicornProcess) -> None:
-    from service.backends import OnnxPolicy, read_card
+    from acting import load_policy
 
     batch = act(server.url, policy="flow", states=STATES, seeds=SEEDS)
     assert batch.status_code == 200, batch.text
@@ -45,12 +45,12 @@ def test_row_i_equals_a_single_request_with_seeds_i(server: UvicornProcess) -> N
     # equal seeds on equal states give equal rows; the noise is row_noise(seeds), as in process
     twice = np.asarray(act(server.url, policy="flow", states=[STATES[0]] * 2, seeds=[9, 9]).json()["actions"])
     np.testing.assert_array_equal(twice[0], twice[1])
-    policy = OnnxPolicy(server.models_dir / "flow.json", read_card(server.models_dir / "flow.json"))
-    expected = policy.act(np.asarray(STATES, np.float32), row_noise(SEEDS, 12, 2), None)
+    policy = load_policy(server.models_dir / "flow.json", backend="onnx")
+    expected = policy.act(np.asarray(STATES, np.float32), noise=row_noise(SEEDS, 12, 2))
     np.testing.assert_allclose(actions, expected, atol=1e-4, rtol=0)
     # a whole-batch seed keeps its meaning: chunk_noise(seed, B), not per-row noise
     whole = np.asarray(act(server.url, policy="flow", states=STATES, seed=5).json()["actions"])
-    np.testing.assert_allclose(whole, policy.act(np.asarray(STATES, np.float32), chunk_noise(5, 6), None), atol=1e-4, rtol=0)
+    np.testing.assert_allclose(whole, policy.act(np.asarray(STATES, np.float32), noise=chunk_noise(5, 6)), atol=1e-4, rtol=0)
     # mse ignores seeds, as it ignores seed
     mse = [act(server.url, policy="mse", states=STATES, **extra).json()["actions"] for extra in ({"seeds": SEEDS}, {})]
     assert mse[0] == mse[1]
@@ -104,10 +104,10 @@ def test_bad_seeds_get_a_422_that_says_why(case: str, body: dict, message: str, 
 
 def test_a_request_split_over_model_calls_keeps_its_noise(test_models: Path) -> None:
     """Rows of one request spread over several calls (small cost budget) get the noise of one unsplit call."""
-    from service.backends import OnnxPolicy, read_card
+    from acting import load_policy
     from service.batching import Batcher
 
-    policy = OnnxPolicy(test_models / "flow.json", read_card(test_models / "flow.json"))
+    policy = load_policy(test_models / "flow.json", backend="onnx")
     states = np.asarray([STATES[i % 6] for i in range(10)], dtype=np.float32)
     seeds = list(range(50, 60))
     calls: list[int] = []
@@ -121,6 +121,6 @@ def test_a_request_split_over_model_calls_keeps_its_noise(test_models: Path) -> 
 
     whole, per_row, fresh = asyncio.run(run())
     assert max(calls) <= 3 and sum(calls) == 30
-    np.testing.assert_allclose(whole, policy.act(states, chunk_noise(5, 10), None), atol=1e-4, rtol=0)
-    np.testing.assert_allclose(per_row, policy.act(states, row_noise(seeds), None), atol=1e-4, rtol=0)
+    np.testing.assert_allclose(whole, policy.act(states, noise=chunk_noise(5, 10)), atol=1e-4, rtol=0)
+    np.testing.assert_allclose(per_row, policy.act(states, noise=row_noise(seeds)), atol=1e-4, rtol=0)
     assert fresh.shape == (10, 12, 2) and np.isfinite(fresh).all()
