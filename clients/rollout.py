@@ -4,7 +4,7 @@
 
 K envs step in lockstep with the project's one rollout runner (`pusht.rollout.run_episodes`); each
 decision step sends ONE batched `POST /act` for every env still running, and each returned chunk is
-executed open loop for --action-horizon steps. Reproducible: episode i is reset with seed
+executed open loop for --action-horizon steps (default: the policy's chunk length, from `GET /policies`). Reproducible: episode i is reset with seed
 `--seed + i`, and its decision d sends, in that request's `seeds`, the row seed
 `pusht.rollout.decision_seed(--seed + i, d)`, from which the service draws that row's flow noise;
 `python -m training.evaluate` applies the same rules in process, so the same model gives the same
@@ -17,6 +17,7 @@ Errors (unreachable server, timeout, 4xx/5xx answer, bad URL) end with one line 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import sys
 import time
@@ -27,11 +28,7 @@ from urllib.parse import urlsplit
 import httpx
 import numpy as np
 
-try:
-    import pusht.rollout  # noqa: F401
-except ModuleNotFoundError as exc:
-    if exc.name != "pusht":
-        raise
+if importlib.util.find_spec("pusht") is None:
     # Run as a script from a checkout that was not pip-installed: the repo root holds `pusht`.
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pusht.gif import FPS, annotated_frame, write_gif as _write_gif
@@ -48,14 +45,8 @@ class ClientError(Exception):
 class HttpPolicy:
     """The runner's act function over HTTP: one `POST /act` per call, on one keep-alive connection."""
 
-    def __init__(
-        self,
-        url: str,
-        policy: str,
-        api_key: str | None = None,
-        timeout: float = 30.0,
-        on_response: Callable[[int, float], None] | None = None,
-    ):
+    def __init__(self, url: str, policy: str, api_key: str | None = None, timeout: float = 30.0,
+                 on_response: Callable[[int, float], None] | None = None):
         self.endpoint = act_endpoint(url)
         self.policy = policy
         self.on_response = on_response
@@ -64,31 +55,14 @@ class HttpPolicy:
         self.latencies_s: list[float] = []
 
     def __call__(self, states: np.ndarray, seeds: list[int]) -> np.ndarray:
-        """POST the batch of states with one seed per row; return actions float32 [B, H, 2]."""
+        """POST the batch of states with one seed per row; return actions float32 [B, horizon, 2]."""
         # float32 -> Python float -> JSON is exact, so the server sees the same float32 states.
-        payload = {
-            "policy": self.policy,
-            "states": np.asarray(states, dtype=np.float32).tolist(),
-            "seeds": [int(s) for s in seeds],
-        }
+        payload = {"policy": self.policy, "states": np.asarray(states, dtype=np.float32).tolist(), "seeds": [int(s) for s in seeds]}
         start = time.perf_counter()
-        try:
-            response = self.client.post(self.endpoint, json=payload)
-        except httpx.TimeoutException as exc:
-            raise ClientError(f"POST {self.endpoint} timed out after {self.client.timeout.read} s ({_one_line(exc) or type(exc).__name__})") from None
-        except httpx.ConnectError as exc:
-            raise ClientError(f"cannot connect to {self.endpoint}: {_one_line(exc) or 'connection failed'}") from None
-        except httpx.HTTPError as exc:
-            raise ClientError(f"POST {self.endpoint} failed: {type(exc).__name__}: {_one_line(exc)}") from None
+        response = self._send("POST", self.endpoint, json=payload)
         self.latencies_s.append(time.perf_counter() - start)
-
-        if response.status_code >= 400:
-            raise ClientError(
-                f"POST {self.endpoint} -> {response.status_code} {response.reason_phrase}: {_error_detail(response)}"
-            )
         try:
-            body = response.json()
-            actions = np.asarray(body["actions"], dtype=np.float32)
+            actions = np.asarray(response.json()["actions"], dtype=np.float32)
         except (ValueError, TypeError, KeyError) as exc:
             raise ClientError(
                 f"POST {self.endpoint} -> {response.status_code}, but the answer has no numeric 'actions' array "
@@ -98,22 +72,31 @@ class HttpPolicy:
             self.on_response(self.requests, self.latencies_s[-1])
         return actions
 
-    def card_id(self) -> str:
-        """The served policy's card id (`pusht.results.card_id`) from `GET /policies`."""
+    def info(self) -> dict[str, Any]:
+        """The served policy's entry of `GET /policies`: kind, horizon, git_commit, steps, ..."""
         url = self.endpoint[: -len("/act")] + "/policies"
-        try:
-            response = self.client.get(url)
-        except httpx.HTTPError as exc:
-            raise ClientError(f"GET {url} failed: {type(exc).__name__}: {_one_line(exc)}") from None
-        if response.status_code >= 400:
-            raise ClientError(f"GET {url} -> {response.status_code} {response.reason_phrase}: {_error_detail(response)}")
+        response = self._send("GET", url)
         try:
             info = {p["name"]: p for p in response.json()["policies"]}
         except (ValueError, TypeError, KeyError) as exc:
             raise ClientError(f"GET {url}: unexpected answer ({type(exc).__name__}: {_one_line(exc)})") from None
         if self.policy not in info:
             raise ClientError(f"GET {url}: the service has no policy {self.policy!r} (it has {sorted(info)})")
-        return card_id(self.policy, info[self.policy].get("git_commit"), info[self.policy].get("steps"))
+        return info[self.policy]
+
+    def _send(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
+        """One request on the connection; a transport failure or a 4xx/5xx answer as a ClientError."""
+        try:
+            response = self.client.request(method, url, **kwargs)
+        except httpx.TimeoutException as exc:
+            raise ClientError(f"{method} {url} timed out after {self.client.timeout.read} s ({_one_line(exc) or type(exc).__name__})") from None
+        except httpx.ConnectError as exc:
+            raise ClientError(f"cannot connect to {url}: {_one_line(exc) or 'connection failed'}") from None
+        except httpx.HTTPError as exc:
+            raise ClientError(f"{method} {url} failed: {type(exc).__name__}: {_one_line(exc)}") from None
+        if response.status_code >= 400:
+            raise ClientError(f"{method} {url} -> {response.status_code} {response.reason_phrase}: {_error_detail(response)}")
+        return response
 
     @property
     def requests(self) -> int:
@@ -149,7 +132,7 @@ def rollout(
     num_envs: int = 100,
     seed: int = 200000,
     max_steps: int = 300,
-    action_horizon: int = 12,
+    action_horizon: int | None = None,
     gif: str | Path | None = None,
     api_key: str | None = None,
     timeout: float = 30.0,
@@ -158,9 +141,10 @@ def rollout(
 ) -> dict[str, Any]:
     """Play episodes seed..seed+episodes-1 against the service at `url`; return the JSON report.
 
-    With `out`, one JSON line per episode goes there; with `gif`, the first episode (both paths printed on stderr).
+    `action_horizon` None: the policy's whole chunk (its horizon in `GET /policies`). With `out`, one JSON line per
+    episode goes there; with `gif`, the first episode (both paths printed on stderr).
     """
-    for name, value in (("episodes", episodes), ("num_envs", num_envs), ("max_steps", max_steps), ("action_horizon", action_horizon)):
+    for name, value in (("episodes", episodes), ("num_envs", num_envs), ("max_steps", max_steps), ("action_horizon", 1 if action_horizon is None else action_horizon)):
         if value < 1:
             raise ClientError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
     if not timeout > 0:
@@ -174,22 +158,18 @@ def rollout(
     bar = _ProgressBar(len(seeds)) if progress else None
     act = HttpPolicy(url, policy, api_key=api_key, timeout=timeout, on_response=bar.on_response if bar else None)
     try:
-        card = act.card_id() if out is not None else None
-        summary = run_episodes(
-            act,
-            seeds,
-            num_envs=num_envs,
-            max_steps=max_steps,
-            action_horizon=action_horizon,
-            progress=bar if bar is not None else False,
-            record_frames=annotated_frame if gif is not None else False,
-        )
+        info = act.info()
+        horizon = info.get("horizon")  # None from a service that does not list it: the runner takes the chunks' length
+        if action_horizon is not None and horizon is not None and action_horizon > horizon:
+            raise ClientError(f"--action-horizon {action_horizon} exceeds policy {policy!r}'s chunks of {horizon} actions")
+        summary = run_episodes(act, seeds, num_envs=num_envs, max_steps=max_steps, action_horizon=action_horizon or horizon,
+                               progress=bar if bar is not None else False, record_frames=annotated_frame if gif is not None else False)
     finally:
         act.close()
         if bar is not None:
             bar.close()
     if out is not None:
-        write_episode_records(out, summary, policy, card)
+        write_episode_records(out, summary, policy, card_id(policy, info.get("git_commit"), info.get("steps")))
         print(f"episodes: wrote {len(summary.episodes)} lines to {out}", file=sys.stderr)
     if gif is not None:
         write_gif(summary.frames, gif)
@@ -201,10 +181,7 @@ def report(summary: RolloutSummary, act: HttpPolicy, url: str, policy: str) -> d
     """The one-line JSON report: scores with their 95% bootstrap intervals, seeds, timing, request stats."""
     latencies_ms = np.asarray(act.latencies_s, dtype=np.float64) * 1000.0
     return {
-        "policy": policy,
-        "url": url,
-        **summary.scores(),
-        "requests": act.requests,
+        "policy": policy, "url": url, **summary.scores(), "requests": act.requests,
         "mean_request_latency_ms": round(float(latencies_ms.mean()), 2) if act.requests else None,
         "p95_request_latency_ms": round(float(np.percentile(latencies_ms, 95)), 2) if act.requests else None,
     }
@@ -242,7 +219,7 @@ def _parser() -> argparse.ArgumentParser:
         prog="python clients/rollout.py",
         description=(
             "Roll out a served Push-T policy over HTTP: K envs in lockstep, one batched POST /act per "
-            "decision step, each 12-action chunk executed open loop. Prints ONE JSON line with the scores. "
+            "decision step, each action chunk executed open loop. Prints ONE JSON line with the scores. "
             "Episode i uses env seed SEED+i; its decision d sends row seed pusht.rollout.decision_seed(SEED+i, d) "
             "in the request's seeds, so the same command gives the same episodes, whatever --num-envs."
         ),
@@ -254,7 +231,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--num-envs", type=int, default=100, help="envs stepped in lockstep, one request per decision for all; scores do not depend on it")
     parser.add_argument("--seed", type=int, default=200000, help="first episode seed (200000..200099 are the held-out seeds)")
     parser.add_argument("--max-steps", type=int, default=300, help="episode step limit")
-    parser.add_argument("--action-horizon", type=int, default=12, help="actions of each chunk executed open loop")
+    parser.add_argument("--action-horizon", type=int, default=None,
+                        help="actions of each chunk executed open loop (default: the whole chunk, the policy's horizon in GET /policies)")
     parser.add_argument("--out", default=None, metavar="FILE", help="write one JSON line per episode (seed, max_reward, success, length, policy, card) to FILE")
     parser.add_argument("--gif", default=None, metavar="FILE", help="write the first episode as an animated GIF (real speed, step/coverage/success caption) to FILE")
     parser.add_argument("--api-key", default=None, help="sent as the X-API-Key header when the service requires a key")

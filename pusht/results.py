@@ -40,8 +40,8 @@ class Trajectory:
     """One episode as a demonstration: the state before each step and the action executed from it."""
 
     seed: int
-    states: np.ndarray  # [T, 5] float32, env units
-    actions: np.ndarray  # [T, 2] float32, env units
+    states: np.ndarray  # [T, state_dim] float32, env units
+    actions: np.ndarray  # [T, action_dim] float32, env units
 
 
 @dataclass

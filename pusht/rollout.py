@@ -2,7 +2,8 @@
 
 K environments advance in lockstep. At each decision step the policy is asked ONCE for an action
 chunk for every running environment, and each chunk is executed open loop for `action_horizon`
-steps. Episode seeds are spread over the K environments: an environment that finishes its episode
+steps (default: the whole chunk, as long as the first answer's chunks; the runner assumes no chunk
+length of its own). Episode seeds are spread over the K environments: an environment that finishes its episode
 takes the next unplayed seed at the following decision step. Each row of a call carries its own
 request seed, `decision_seed(episode_seed, d)` for the episode's decision d (`pusht/seeding.py`), so
 an episode's result depends on its own seed only, whatever `num_envs`.
@@ -53,7 +54,7 @@ __all__ = [
 ]
 
 ActFn = Callable[[np.ndarray, list[int]], np.ndarray]
-"""(states [B, 5] float32 in env units, one request seed per row) -> actions [B, H >= action_horizon, 2]."""
+"""(states [B, 5] float32 in env units, one request seed per row) -> actions [B, H, 2], H >= action_horizon."""
 
 ProgressFn = Callable[[int, int], None]
 """(episodes_done, episodes_total) -> None, called after every finished episode."""
@@ -68,7 +69,7 @@ def run_episodes(
     seeds: Sequence[int],
     num_envs: int,
     max_steps: int = 300,
-    action_horizon: int = 12,
+    action_horizon: int | None = None,
     env_factory: Callable[[], Any] | None = None,
     progress: bool | ProgressFn = False,
     record_frames: bool | FrameFn = False,
@@ -76,10 +77,13 @@ def run_episodes(
 ) -> RolloutSummary:
     """Play one episode per seed with `num_envs` envs in lockstep, one `act` call per decision, row seeds `decision_seed(e, d)`.
 
+    `action_horizon`: actions of each chunk run open loop (None: the whole chunk, as long as the first call's).
     `progress`: bool or `(done, total)`; `record_frames`: keep the first episode's frames (through a FrameFn if callable).
     """
     seeds = _check_seeds(seeds)
     for name, value in (("num_envs", num_envs), ("max_steps", max_steps), ("action_horizon", action_horizon)):
+        if name == "action_horizon" and value is None:
+            continue
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
     if env_factory is None:
@@ -90,7 +94,7 @@ def run_episodes(
     num_envs = min(int(num_envs), len(seeds))
     envs = [env_factory() for _ in range(num_envs)]
     try:
-        results, frames, trajectories, decisions = _lockstep(
+        results, frames, trajectories, decisions, action_horizon = _lockstep(
             envs, act, seeds, max_steps, action_horizon, report, record_frames, record_trajectories
         )
     finally:
@@ -178,6 +182,8 @@ def _lockstep(envs, act, seeds, max_steps, action_horizon, report, record_frames
         states = np.stack([s.obs for s in running]).astype(np.float32)
         row_seeds = [decision_seed(seeds[s.index], s.decisions) for s in running]
         chunk = _check_actions(act(states, row_seeds), len(running), action_horizon)
+        if action_horizon is None:
+            action_horizon = chunk.shape[1]  # the policy's chunk length: every later chunk runs as many actions
         decisions += 1
 
         finished: list[_Slot] = []
@@ -215,19 +221,19 @@ def _lockstep(envs, act, seeds, max_steps, action_horizon, report, record_frames
             report(done_count, len(seeds))
             start(slot)
     kept = [t for t in trajectories if t is not None]
-    return [r for r in results if r is not None], frames, kept, decisions
+    return [r for r in results if r is not None], frames, kept, decisions, action_horizon
 
 
-def _check_actions(actions: Any, batch: int, action_horizon: int) -> np.ndarray:
+def _check_actions(actions: Any, batch: int, action_horizon: int | None) -> np.ndarray:
     try:
         actions = np.asarray(actions, dtype=np.float32)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"act returned something that is not a numeric array: {exc}") from None
-    if actions.ndim != 3 or actions.shape[0] != batch or actions.shape[2] != ACTION_DIM:
+    if actions.ndim != 3 or actions.shape[0] != batch or actions.shape[1] < 1 or actions.shape[2] != ACTION_DIM:
         raise ValueError(
-            f"act returned actions of shape {actions.shape}; expected [{batch}, >= {action_horizon}, {ACTION_DIM}]"
+            f"act returned actions of shape {actions.shape}; expected [{batch}, >= {action_horizon or 1}, {ACTION_DIM}]"
         )
-    if actions.shape[1] < action_horizon:
+    if action_horizon is not None and actions.shape[1] < action_horizon:
         raise ValueError(
             f"act returned chunks of {actions.shape[1]} actions; action_horizon needs at least {action_horizon}"
         )

@@ -190,6 +190,7 @@ def test_e2e_report_gif_and_determinism(server, tmp_path):
 
     assert first["policy"] == "flow" and first["url"] == server
     assert first["episodes"] == 4 and first["seeds"] == [SEED, SEED + 3]
+    assert first["action_horizon"] == 12  # the served policy's chunk length, from GET /policies
     assert 0.0 <= first["mean_max_reward"] <= 1.0 and 0.0 <= first["success_rate"] <= 1.0
     lo, hi = first["mean_max_reward_ci95"]
     assert lo <= first["mean_max_reward"] <= hi
@@ -219,24 +220,29 @@ def test_e2e_report_gif_and_determinism(server, tmp_path):
 
 @pytest.mark.slow
 def test_e2e_server_errors_are_one_line(server):
-    line = assert_one_line_error(run_client("--url", server, "--api-key", API_KEY, "--policy", "nosuchpolicy", *SHORT), "404")
-    assert "nosuchpolicy" in line
+    # the client asks GET /policies for the policy's chunk length first, so that is where an unknown policy shows
+    line = assert_one_line_error(run_client("--url", server, "--api-key", API_KEY, "--policy", "nosuchpolicy", *SHORT),
+                                 f"{server}/policies", "has no policy 'nosuchpolicy'")
+    assert "'flow'" in line  # what it has instead
     assert_one_line_error(run_client("--url", server, "--api-key", "wrong-key", *SHORT), "401")
     assert_one_line_error(run_client("--url", server, *SHORT), "401")
-    assert_one_line_error(run_client("--url", server + "/no/such/path", "--api-key", API_KEY, *SHORT), "404", "/no/such/path/act")
+    assert_one_line_error(run_client("--url", server + "/no/such/path", "--api-key", API_KEY, *SHORT), "404", "/no/such/path/policies")
+    # an action horizon longer than the served chunks is refused before any episode
+    assert_one_line_error(run_client("--url", server, "--api-key", API_KEY, "--action-horizon", "13", *SHORT),
+                          "--action-horizon 13", "chunks of 12 actions")
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("policy", ["flow", "mse"])
 def test_http_equals_in_process_evaluation_for_any_num_envs(server, models_dir, policy):
     """Same model and seeds: HTTP with 3 envs in lockstep plays exactly the episodes of in-process runs with 1 or 4."""
+    import acting
     from clients.rollout import HttpPolicy
     from pusht.rollout import decision_seed, episode_seeds, run_episodes
-    from training.evaluate import make_act_fn, onnx_actor
 
     if not (models_dir / f"{policy}.onnx").exists():
         pytest.skip(f"no {policy} model served")
-    actor, kind = onnx_actor(models_dir / f"{policy}.onnx")
+    in_process = acting.load_policy(models_dir / f"{policy}.onnx")
     seeds = episode_seeds(SEED, 4)
     sent: list[list[int]] = []
 
@@ -251,7 +257,7 @@ def test_http_equals_in_process_evaluation_for_any_num_envs(server, models_dir, 
         http.close()
     assert sent[0] == [decision_seed(s, 0) for s in seeds[:3]]  # the request names each row's seed
     for num_envs in (1, 4):
-        local = run_episodes(make_act_fn(actor, kind), seeds, num_envs=num_envs, max_steps=60)
+        local = run_episodes(acting.rollout_act(in_process), seeds, num_envs=num_envs, max_steps=60)
         assert over_http.episodes == local.episodes, num_envs
 
 

@@ -206,6 +206,7 @@ def test_progress_callback_counts_episodes():
         (lambda s, r: np.zeros((len(s), 12)), "shape"),
         (lambda s, r: np.zeros((len(s) + 1, 12, 2)), "shape"),
         (lambda s, r: np.zeros((len(s), 12, 3)), "shape"),
+        (lambda s, r: np.zeros((len(s), 0, 2)), "shape"),
         (lambda s, r: np.zeros((len(s), 8, 2)), "at least 12"),
         (lambda s, r: np.full((len(s), 12, 2), np.nan), "non-finite"),
         (lambda s, r: [["a"]], "numeric"),
@@ -213,7 +214,29 @@ def test_progress_callback_counts_episodes():
 )
 def test_bad_act_output_is_a_clear_error(bad_act, message):
     with pytest.raises(ValueError, match=message):
-        run_episodes(bad_act, [1, 2], num_envs=2, max_steps=12, env_factory=_gym_pusht_env)
+        run_episodes(bad_act, [1, 2], num_envs=2, max_steps=12, action_horizon=12, env_factory=_gym_pusht_env)
+
+
+def test_the_chunk_length_comes_from_the_actions():
+    """No action_horizon: each chunk runs whole, as long as the policy makes it (16 here); shorter chunks later fail."""
+    def chase16(states, seeds):
+        ramp = np.linspace(0.0, 1.0, 16, dtype=np.float32)[None, :, None]
+        return states[:, None, 0:2] + ramp * (states[:, 2:4] - states[:, 0:2])[:, None, :]
+
+    act = Recorder(chase16)
+    summary = run_episodes(act, [100000, 100001], num_envs=2, max_steps=40, env_factory=_our_env)
+    assert summary.action_horizon == 16 and summary.to_dict()["action_horizon"] == 16
+    assert summary.decisions == 3 and act.batch_sizes == [2, 2, 2]  # 40 steps = chunks of 16, 16, 8
+    assert [e.length for e in summary.episodes] == [40, 40]
+    assert run_episodes(chase16, [100000], num_envs=1, max_steps=40, action_horizon=5, env_factory=_our_env).decisions == 8
+    calls = []
+
+    def shrinking(states, seeds):
+        calls.append(len(states))
+        return chase16(states, seeds)[:, : 16 if len(calls) == 1 else 12]
+
+    with pytest.raises(ValueError, match="at least 16"):
+        run_episodes(shrinking, [100000], num_envs=1, max_steps=40, env_factory=_our_env)
 
 
 @pytest.mark.parametrize(

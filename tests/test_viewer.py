@@ -13,10 +13,11 @@ import zarr
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+from acting import load_policy
 from pusht import PushTEnv
 from service_fixtures import SHIPPED_MODELS, UvicornProcess, shipped_models_available
 from training.data import load_replay
-from training.evaluate import evaluate_policy, onnx_actor
+from training.evaluate import evaluate_policy
 
 pytestmark = pytest.mark.skipif(not shipped_models_available(), reason="needs the shipped models/flow and models/mse")
 
@@ -59,7 +60,7 @@ def play(ws, policy: str | None, seed: int, fps: float = 200) -> list[dict]:
 
 @pytest.mark.parametrize("policy, seeds", [("flow", (200000, 200003)), ("mse", (200001,))])
 def test_viewer_episode_scores_equal_training_evaluate(server, policy, seeds):
-    actor, kind = onnx_actor(SHIPPED_MODELS / f"{policy}.onnx")
+    in_process = load_policy(SHIPPED_MODELS / f"{policy}.onnx")
     ws, hello = session(server)
     assert {"flow", "mse"} <= set(hello["policies"]) and len(hello["goal"]) == 2
     with ws:
@@ -67,7 +68,7 @@ def test_viewer_episode_scores_equal_training_evaluate(server, policy, seeds):
             started = time.perf_counter()
             states = play(ws, policy, seed)
             elapsed = time.perf_counter() - started
-            reference = evaluate_policy(actor, kind, episodes=1, seed=seed).episodes[0]
+            reference = evaluate_policy(in_process, episodes=1, seed=seed).episodes[0]
             last = states[-1]
             assert (last["maxReward"], last["success"], last["step"]) == (reference.max_reward, reference.success, reference.length)
             assert last["coverage"] == reference.final_coverage

@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 import zarr
 
+from acting import load_policy
 from service_fixtures import SHIPPED_MODELS, UvicornProcess, shipped_models_available
 from training.data import load_replay
-from training.evaluate import evaluate_policy, onnx_actor
+from training.evaluate import evaluate_policy
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
@@ -80,8 +81,7 @@ def test_browser_plays_the_episode_training_evaluate_scores(server, driver):
     seed = 200000
     driver.get(f"{server.url}/viewer?policy=flow&seed={seed}&autoplay=1&fps=200")
     status = wait_for(driver, "window.pushtViewer.status().done && window.pushtViewer.status()")
-    actor, kind = onnx_actor(SHIPPED_MODELS / "flow.onnx")
-    reference = evaluate_policy(actor, kind, episodes=1, seed=seed).episodes[0]
+    reference = evaluate_policy(load_policy(SHIPPED_MODELS / "flow.onnx"), episodes=1, seed=seed).episodes[0]
     assert status == {"step": reference.length, "coverage": reference.final_coverage, "maxReward": reference.max_reward,
                       "done": True, "success": reference.success}
     # the canvas shows the goal (light green) and the block (slate grey)
