@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
 
@@ -9,8 +10,8 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
+from acting.card import CARD_FIELDS
 from training.checkpoint import (
-    CARD_FIELDS,
     CheckpointError,
     git_commit,
     load_acting_policy,
@@ -20,14 +21,18 @@ from training.checkpoint import (
     set_noise_scale,
     update_card,
 )
+from training.normalization import Normalizer
 from training.policies import ActingPolicy, FlowPolicy, MSEPolicy, build_policy
 
+REPO = Path(__file__).resolve().parent.parent
+
 KINDS = ["mse", "flow"]
+# float32 values: the card records the statistics the policy's normalizer holds
 NORMALIZATION = {
-    "state_mean": [229.1, 293.3, 246.5, 272.4, 1.82],
-    "state_std": [101.9, 96.5, 63.9, 65.9, 1.79],
-    "action_mean": [228.2, 294.0],
-    "action_std": [101.6, 96.0],
+    "state_mean": [229.125, 293.25, 246.5, 272.375, 1.8125],
+    "state_std": [101.875, 96.5, 63.875, 65.875, 1.78125],
+    "action_mean": [228.25, 294.0],
+    "action_std": [101.625, 96.0],
 }
 
 
@@ -51,7 +56,7 @@ def test_save_load_gives_identical_outputs(tmp_path: Path, kind: str) -> None:
     assert torch.equal(loaded.sample_actions(state, noise=noise), policy.sample_actions(state, noise=noise))
 
     acting = load_acting_policy(stem)
-    reference = ActingPolicy(policy, **NORMALIZATION).eval()
+    reference = ActingPolicy(policy).eval()  # save_checkpoint gave it NORMALIZATION
     env_state = torch.rand(9, 5) * 512
     assert torch.equal(acting(env_state, noise), reference(env_state, noise))
 
@@ -87,9 +92,7 @@ def test_custom_architecture_round_trips(tmp_path: Path) -> None:
 def test_normalizer_object_and_numpy_statistics_are_accepted(tmp_path: Path) -> None:
     import numpy as np
 
-    from training.data import Normalizer
-
-    norm = Normalizer(**{k: np.asarray(v) for k, v in NORMALIZATION.items()})
+    norm = Normalizer().set({k: np.asarray(v) for k, v in NORMALIZATION.items()})
     card = save_checkpoint(tmp_path / "m", MSEPolicy(), norm.to_dict())
     assert card["normalization"]["action_std"] == pytest.approx(NORMALIZATION["action_std"], rel=1e-6)
     card = save_checkpoint(tmp_path / "n", MSEPolicy(), norm)
@@ -99,7 +102,7 @@ def test_normalizer_object_and_numpy_statistics_are_accepted(tmp_path: Path) -> 
 def test_save_rejects_bad_normalization(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="state_std must be a list of 5"):
         save_checkpoint(tmp_path / "x", MSEPolicy(), dict(NORMALIZATION, state_std=[1.0, 2.0]))
-    with pytest.raises(ValueError, match="missing 'action_mean'"):
+    with pytest.raises(ValueError, match="action_mean must be a list of 2"):
         save_checkpoint(tmp_path / "x", MSEPolicy(), {k: v for k, v in NORMALIZATION.items() if k != "action_mean"})
 
 
@@ -256,6 +259,42 @@ def test_bad_normalization_in_card(tmp_path: Path) -> None:
     _edit_card(stem, normalization=dict(NORMALIZATION, action_std=[1.0]))
     with pytest.raises(CheckpointError, match=r"mse\.json: normalization\.action_std must be a list of 2"):
         load_checkpoint(stem)
+
+
+def test_a_policy_without_normalization_is_not_saved(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="no normalization yet"):
+        save_checkpoint(tmp_path / "x", MSEPolicy())
+    assert not (tmp_path / "x.json").exists()
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_legacy_angle_buffers_are_refused_until_converted(tmp_path: Path, kind: str) -> None:
+    """Checkpoints from before the policy owned its normalization carried angle_mean/angle_std: one conversion drops them."""
+    spec = importlib.util.spec_from_file_location("convert_checkpoints", REPO / "scripts" / "convert_checkpoints.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    convert = module.convert
+
+    stem, policy = _save(tmp_path, kind, angle_encoding="sincos")
+    weights = {k: v.contiguous() for k, v in policy.state_dict().items()}
+    weights["angle_mean"] = torch.tensor([NORMALIZATION["state_mean"][-1]])
+    weights["angle_std"] = torch.tensor([NORMALIZATION["state_std"][-1]])
+    save_file(weights, str(stem.with_suffix(".safetensors")), metadata={"format": "pt", "kind": kind})
+    with pytest.raises(CheckpointError, match=r"safetensors: written before the policy owned its normalization.*convert_checkpoints"):
+        load_checkpoint(stem)
+    assert convert(stem) and not convert(stem)  # converted once, then current
+    state, noise = torch.rand(5, 5) * 512, torch.randn(5, 12, 2)
+    assert torch.equal(load_acting_policy(stem)(state, noise), ActingPolicy(policy.eval())(state, noise))
+    weights["angle_std"] = torch.tensor([2.0])  # a copy that disagrees with the card: nothing is written
+    save_file(weights, str(stem.with_suffix(".safetensors")), metadata={"format": "pt", "kind": kind})
+    with pytest.raises(CheckpointError, match="angle_std .* differs from the card's normalization"):
+        convert(stem)
+
+
+@pytest.mark.parametrize("stem", ["models/flow", "models/mse", "records/flow-agentframe-padend-150k-noise0.6/best", "records/mse-sincos-skip-100k/best"])
+def test_shipped_weights_are_converted(stem: str) -> None:
+    policy, card = load_checkpoint(REPO / stem)
+    assert policy.normalizer.to_dict() == card["normalization"]
 
 
 def test_nan_weights(tmp_path: Path) -> None:

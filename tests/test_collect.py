@@ -14,8 +14,9 @@ import zarr
 from pusht.rollout import default_env_factory
 from training.checkpoint import load_checkpoint
 from training.collect import main as collect_main
-from training.data import load_replay
-from training.train import main as train_main, training_windows
+from training.data import load_replay, make_windows
+from training.normalization import Normalizer
+from training.train import main as train_main
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED_FLOW = REPO / "models" / "flow"
@@ -93,8 +94,8 @@ def test_collect_refuses_the_heldout_seeds(tmp_path, capsys):
 
 def test_agent_frame_windows_are_relative_to_the_agent():
     replay = load_replay(DATA)
-    states, absolute = training_windows(replay, 12, "absolute")
-    _, relative = training_windows(replay, 12, "agent")
+    states, absolute = make_windows(replay, 12)
+    relative = Normalizer(action_frame="agent").in_frame(states, absolute)
     np.testing.assert_allclose(relative + states[:, None, :2], absolute, atol=1e-4)
 
 
@@ -105,8 +106,8 @@ def test_fine_tuning_on_collected_episodes_keeps_the_base_normalization(collecte
             "--extra-data", str(out), "--steps", "20", "--batch-size", "32", "--eval-every", "-1", "--no-progress"]
     assert train_main(args) == 0
     err = capsys.readouterr().err
-    base_windows = len(training_windows(load_replay(DATA), 12, "absolute")[0])
-    extra_windows = len(training_windows(load_replay(out), 12, "absolute")[0])
+    base_windows = len(make_windows(load_replay(DATA), 12)[0])
+    extra_windows = len(make_windows(load_replay(out), 12)[0])
     assert f"windows: {base_windows + extra_windows} ({base_windows} demonstration, {extra_windows} extra)" in err
     tuned, card = load_checkpoint(tmp_path / "ft" / "last")
     base, base_card = load_checkpoint(SHIPPED_FLOW)

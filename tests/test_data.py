@@ -1,4 +1,4 @@
-"""The committed low-dimensional dataset, windows inside episodes, normalization, and clear dataset errors."""
+"""The committed low-dimensional dataset, windows inside episodes, the demonstrations' statistics, and clear dataset errors."""
 
 from __future__ import annotations
 
@@ -12,19 +12,9 @@ import pytest
 import torch
 import zarr
 
-from training import policies
-from training.data import (
-    DEFAULT_DATASET,
-    DatasetError,
-    Normalizer,
-    Replay,
-    add_state_noise,
-    load_replay,
-    make_windows,
-    training_set,
-    training_windows,
-    window_starts,
-)
+from training.data import DEFAULT_DATASET, DatasetError, Replay, load_replay, make_windows, training_set, window_starts
+from training.normalization import Normalizer
+from training.policies import build_policy
 
 REPO = Path(__file__).resolve().parent.parent
 FULL_DATASET = REPO.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr"
@@ -81,31 +71,36 @@ RECORDED_RUNS = sorted((REPO / "records").glob("*/last.json"))
 
 @pytest.mark.parametrize("card_path", RECORDED_RUNS, ids=[p.parent.name for p in RECORDED_RUNS])
 def test_training_set_reproduces_every_recorded_run_s_statistics(card_path: Path) -> None:
-    """The one-call dataset must normalize exactly as the runs behind the recorded scores did."""
+    """A policy fitted on the one-call dataset must normalize exactly as the runs behind the recorded scores did."""
     card = json.loads(card_path.read_text())
     config = card["config"]
     if config.get("init"):
         pytest.skip("fine-tuned runs keep their base's normalization")
-    frame = card["architecture"].get("action_frame", "absolute")
-    data = training_set(REPO / config["data"], config["horizon"], frame, bool(config.get("pad_episode_end")))
-    assert data.normalizer.to_dict() == card["normalization"]
+    data = training_set(REPO / config["data"], config["horizon"], bool(config.get("pad_episode_end")))
+    policy = build_policy(card["kind"], **card["architecture"])
+    policy.normalizer.set(data.statistics(policy.action_frame))
+    assert policy.normalizer.to_dict() == card["normalization"]
     assert len(data) == data.demo_windows == (25650 if config.get("pad_episode_end") else 23384)
 
 
-@pytest.mark.parametrize("frame, pad_end", [("absolute", False), ("agent", False), ("agent", True)])
-def test_training_set_is_the_normalized_windows(replay: Replay, frame: str, pad_end: bool) -> None:
-    data = training_set(DEFAULT_DATASET, 12, frame, pad_end, extra_data=(DEFAULT_DATASET,))
-    states, chunks = training_windows(replay, 12, frame, pad_end)
-    if frame == "agent":
-        np.testing.assert_array_equal(chunks, make_windows(replay, 12, pad_end)[1] - states[:, None, :2])
+@pytest.mark.parametrize("pad_end", [False, True])
+def test_training_set_is_the_env_unit_windows(replay: Replay, pad_end: bool) -> None:
+    data = training_set(DEFAULT_DATASET, 12, pad_end, extra_data=(DEFAULT_DATASET,))
+    states, chunks = make_windows(replay, 12, pad_end)
     assert data.demo_windows == len(states) and len(data) == 2 * len(states)  # the extra store's windows follow
-    norm = data.normalizer
-    expected_states = torch.as_tensor(np.asarray(norm.normalize_state(states), dtype=np.float32))
-    expected_chunks = torch.as_tensor(np.asarray(norm.normalize_action(chunks), dtype=np.float32))
-    assert torch.equal(data.states, torch.cat([expected_states, expected_states]))
-    assert torch.equal(data.chunks, torch.cat([expected_chunks, expected_chunks]))
-    given = training_set(DEFAULT_DATASET, 12, frame, pad_end, normalizer=Normalizer.fit(replay.states * 2, replay.actions))
-    assert given.normalizer.state_mean[0] == pytest.approx(2 * norm.state_mean[0], rel=1e-5)  # a given normalizer wins
+    assert torch.equal(data.states, torch.cat([torch.from_numpy(states)] * 2))
+    assert torch.equal(data.chunks, torch.cat([torch.from_numpy(chunks)] * 2))
+
+
+@pytest.mark.parametrize("frame", ["absolute", "agent"])
+def test_statistics_are_the_demonstrations_alone_in_the_frame(replay: Replay, frame: str) -> None:
+    data = training_set(DEFAULT_DATASET, 12, extra_data=(DEFAULT_DATASET,))
+    stats = data.statistics(frame)
+    assert stats.action_frame == frame
+    np.testing.assert_allclose(stats.state_mean, replay.states.astype(np.float64).mean(0), rtol=1e-6)
+    states, chunks = make_windows(replay, 12)
+    actions = replay.actions if frame == "absolute" else chunks - states[:, None, :2]
+    np.testing.assert_allclose(stats.action_std, actions.astype(np.float64).reshape(-1, 2).std(0), rtol=1e-6)
 
 
 def test_short_episodes_give_no_windows() -> None:
@@ -119,62 +114,28 @@ def test_normalizer_statistics(replay: Replay) -> None:
     norm = Normalizer.fit(replay.states, replay.actions)
     np.testing.assert_allclose(norm.state_mean, replay.states.astype(np.float64).mean(0), rtol=1e-6)
     np.testing.assert_allclose(norm.action_std, replay.actions.astype(np.float64).std(0), rtol=1e-6)
-    states_n = norm.normalize_state(replay.states)
-    np.testing.assert_allclose(states_n.mean(0), 0, atol=1e-4)
-    np.testing.assert_allclose(states_n.std(0), 1, atol=1e-4)
-    chunk = replay.actions[:12]
-    np.testing.assert_allclose(norm.denormalize_action(norm.normalize_action(chunk)), chunk, atol=1e-4)
-
-
-def test_normalizer_matches_acting_policy(replay: Replay) -> None:
-    """Training normalizes with Normalizer, acting with the card's statistics: both must agree."""
-    assert policies.MIN_STD == pytest.approx(1e-6)
-    norm = Normalizer.fit(replay.states, replay.actions)
-    acting = policies.ActingPolicy(policies.MSEPolicy(), **norm.to_dict())
-    state = torch.from_numpy(replay.states[:7])
-    torch.testing.assert_close((state - acting.state_mean) / acting.state_std, norm.normalize_state(state))
+    states = torch.from_numpy(replay.states)
+    states_n = norm.state(states)
+    torch.testing.assert_close(states_n.mean(0), torch.zeros(5), atol=1e-4, rtol=0)
+    torch.testing.assert_close(states_n.std(0), torch.ones(5), atol=1e-4, rtol=0)
+    chunk = torch.from_numpy(replay.actions[:24]).reshape(2, 12, 2)
+    torch.testing.assert_close(norm.actions(states[:2], norm.chunk(states[:2], chunk)), chunk, atol=1e-4, rtol=0)
 
 
 def test_normalizer_guards_constant_dimensions() -> None:
     states = np.ones((4, 5), np.float32)
     norm = Normalizer.fit(states, np.zeros((4, 2)))
-    assert np.all(norm.state_std == 1.0) and np.all(norm.action_std == 1.0)
-    assert np.all(np.isfinite(norm.normalize_state(states)))
+    assert torch.all(norm.state_std == 1.0) and torch.all(norm.action_std == 1.0)
+    assert torch.isfinite(norm.state(torch.from_numpy(states))).all()
 
 
-def test_normalizer_json_round_trip(tmp_path: Path, replay: Replay) -> None:
+def test_normalizer_dict_round_trip_and_errors(replay: Replay) -> None:
     norm = Normalizer.fit(replay.states, replay.actions)
-    path = tmp_path / "norm.json"
-    norm.save(path)
-    loaded = Normalizer.load(path)
-    for key in ("state_mean", "state_std", "action_mean", "action_std"):
-        np.testing.assert_array_equal(getattr(loaded, key), getattr(norm, key))
-    assert Normalizer.from_dict(norm.to_dict()).to_dict() == norm.to_dict()
-
-
-def test_normalizer_file_errors_name_the_file(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match=r"missing\.json: normalizer file not found"):
-        Normalizer.load(tmp_path / "missing.json")
-    bad = tmp_path / "bad.json"
-    bad.write_text("{not json")
-    with pytest.raises(ValueError, match=r"bad\.json: not a valid normalizer JSON"):
-        Normalizer.load(bad)
-    bad.write_text('{"state_mean": [1.0], "state_std": [1.0], "action_mean": [1.0]}')
-    with pytest.raises(ValueError, match=r"bad\.json: normalizer action_std must be"):
-        Normalizer.load(bad)
-
-
-def test_add_state_noise() -> None:
-    states = torch.zeros(20000, 5)
-    noisy = add_state_noise(states, 0.05, torch.Generator().manual_seed(0))
-    assert abs(float(noisy.std()) - 0.05) < 0.002
-    again = add_state_noise(states, 0.05, torch.Generator().manual_seed(0))
-    assert torch.equal(noisy, again)
-    assert add_state_noise(states, 0.0) is states
-    noisy_np = add_state_noise(np.zeros((1000, 5), np.float32), 0.1, np.random.default_rng(0))
-    assert noisy_np.dtype == np.float32 and 0.09 < noisy_np.std() < 0.11
-    with pytest.raises(ValueError, match="noise std must be >= 0"):
-        add_state_noise(states, -1.0)
+    assert Normalizer().set(norm.to_dict()).to_dict() == norm.to_dict() == Normalizer().set(norm).to_dict()
+    with pytest.raises(ValueError, match="action_std must be a list of 2"):
+        Normalizer().set({**norm.to_dict(), "action_std": [1.0]})
+    with pytest.raises(ValueError, match="no normalization yet"):
+        Normalizer().to_dict()
 
 
 # --- the committed copy and its provenance ---

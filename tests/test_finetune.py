@@ -32,6 +32,7 @@ def _steered_from_shipped(steering_dims=(32, 32)):
     arch = {**card["architecture"], "steering_dims": list(steering_dims)}
     policy = build_policy("flow", **arch)
     policy.load_state_dict(base.state_dict(), strict=False)
+    policy.normalizer.set(base.normalizer)
     return base, policy, card
 
 
@@ -41,13 +42,13 @@ def test_fresh_steering_acts_exactly_as_its_base_flow() -> None:
     states = torch.rand(16, 5) * torch.tensor([400.0, 400.0, 300.0, 300.0, 6.0]) + torch.tensor([50.0, 50.0, 100.0, 100.0, 0.0])
     noise = torch.randn(16, 12, 2)
     with torch.no_grad():
-        a = ActingPolicy(base.eval(), **card["normalization"])(states, noise)
-        b = ActingPolicy(steered.eval(), **card["normalization"])(states, noise)
+        a = ActingPolicy(base.eval())(states, noise)
+        b = ActingPolicy(steered.eval())(states, noise)
     assert torch.equal(a, b)
     # ...and a trained steering does move the actions
     with torch.no_grad():
         steered.steering.mean_head.bias.fill_(0.5)
-        c = ActingPolicy(steered.eval(), **card["normalization"])(states, noise)
+        c = ActingPolicy(steered.eval())(states, noise)
     assert (c - a).abs().max() > 1.0
 
 

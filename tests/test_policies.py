@@ -1,35 +1,36 @@
-"""Both policies behind one interface: sizes, shapes, learning on real windows, determinism, acting in env units."""
+"""Both policies behind one interface: sizes, shapes, learning on real windows, determinism, loss and acting in env units through the policy's normalizer."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from training.data import Normalizer, load_replay, make_windows
-from training.policies import (
-    ActingPolicy,
-    FlowPolicy,
-    MSEPolicy,
-    Policy,
-    build_policy,
-    count_parameters,
-)
+from training.data import DEFAULT_DATASET, training_set
+from training.networks import count_parameters
+from training.policies import ActingPolicy, FlowPolicy, MSEPolicy, Policy, build_policy
 
 KINDS = ["mse", "flow"]
+IDENTITY = {"state_mean": [0.0] * 5, "state_std": [1.0] * 5, "action_mean": [0.0] * 2, "action_std": [1.0] * 2}
 
 
 @pytest.fixture(scope="module")
-def real_batch() -> tuple[torch.Tensor, torch.Tensor, Normalizer]:
-    """64 normalized windows spread over the real dataset, and its normalizer."""
-    replay = load_replay()
-    states, chunks = make_windows(replay)
-    norm = Normalizer.fit(replay.states, replay.actions)
-    idx = torch.linspace(0, len(states) - 1, 64).long().numpy()
-    return (
-        torch.from_numpy(norm.normalize_state(states[idx])),
-        torch.from_numpy(norm.normalize_action(chunks[idx])),
-        norm,
-    )
+def real_batch():
+    """64 env-unit windows spread over the real dataset, and the training set (its `statistics` fit a policy)."""
+    data = training_set(DEFAULT_DATASET)
+    idx = torch.linspace(0, len(data) - 1, 64).long()
+    return data.states[idx], data.chunks[idx], data
+
+
+def _fitted(policy, data):
+    """`policy` with its normalizer fitted on the demonstrations, as training does."""
+    policy.normalizer.set(data.statistics(policy.action_frame))
+    return policy
+
+
+def _acting(policy, state_mean, state_std, action_mean, action_std) -> ActingPolicy:
+    policy.normalizer.set({"state_mean": list(map(float, state_mean)), "state_std": list(map(float, state_std)),
+                           "action_mean": list(map(float, action_mean)), "action_std": list(map(float, action_std))})
+    return ActingPolicy(policy).eval()
 
 
 def test_parameter_counts_match_the_published_architectures() -> None:
@@ -41,6 +42,7 @@ def test_parameter_counts_match_the_published_architectures() -> None:
 def test_interface_and_shapes(kind: str) -> None:
     torch.manual_seed(0)
     policy = build_policy(kind)
+    policy.normalizer.set(IDENTITY)
     assert isinstance(policy, Policy)
     assert policy.kind == kind
     state = torch.randn(7, 5)
@@ -87,9 +89,9 @@ def test_unknown_kind() -> None:
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_loss_decreases_on_real_windows(kind: str, real_batch) -> None:
-    states, chunks, _ = real_batch
+    states, chunks, data = real_batch
     torch.manual_seed(0)
-    before, after = _loss_before_and_after_training(build_policy(kind), states, chunks, steps=200)
+    before, after = _loss_before_and_after_training(_fitted(build_policy(kind), data), states, chunks, steps=200)
     # measured: mse 0.95 -> 0.02, flow 1.98 -> 1.13 on this batch (flow targets stay noisy: x1 - x0)
     assert after < 0.7 * before, (before, after)
 
@@ -138,7 +140,7 @@ def _constant_mse(chunk_n: torch.Tensor, **arch) -> MSEPolicy:
 
 def test_acting_policy_denormalizes() -> None:
     chunk_n = torch.linspace(-1, 1, 24).reshape(12, 2)
-    acting = ActingPolicy(_constant_mse(chunk_n), [250.0] * 5, [100.0] * 5, [200.0, 300.0], [50.0, 80.0]).eval()
+    acting = _acting(_constant_mse(chunk_n), [250.0] * 5, [100.0] * 5, [200.0, 300.0], [50.0, 80.0])
     out = acting(torch.rand(4, 5) * 512)
     expected = chunk_n * torch.tensor([50.0, 80.0]) + torch.tensor([200.0, 300.0])
     torch.testing.assert_close(out, expected.expand(4, 12, 2))
@@ -149,7 +151,7 @@ def test_acting_policy_normalizes_the_state() -> None:
     seen: list[torch.Tensor] = []
     policy.net.register_forward_pre_hook(lambda module, args: seen.append(args[0].clone()))
     mean, std = torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0]), torch.tensor([2.0, 4.0, 8.0, 16.0, 0.5])
-    acting = ActingPolicy(policy, mean, std, [0.0, 0.0], [1.0, 1.0]).eval()
+    acting = _acting(policy, mean, std, [0.0, 0.0], [1.0, 1.0])
     state = torch.rand(3, 5) * 512
     acting(state)
     torch.testing.assert_close(seen[0], (state - mean) / std)
@@ -157,7 +159,7 @@ def test_acting_policy_normalizes_the_state() -> None:
 
 def test_agent_frame_chunks_are_relative_to_the_agent() -> None:
     chunk_n = torch.linspace(-1, 1, 24).reshape(12, 2)
-    acting = ActingPolicy(_constant_mse(chunk_n, action_frame="agent"), [250.0] * 5, [100.0] * 5, [-3.0, 2.0], [50.0, 60.0]).eval()
+    acting = _acting(_constant_mse(chunk_n, action_frame="agent"), [250.0] * 5, [100.0] * 5, [-3.0, 2.0], [50.0, 60.0])
     state = torch.tensor([[100.0, 200.0, 300.0, 300.0, 1.0], [400.0, 50.0, 300.0, 300.0, 1.0]])
     relative = chunk_n * torch.tensor([50.0, 60.0]) + torch.tensor([-3.0, 2.0])
     torch.testing.assert_close(acting(state), (relative + state[:, None, :2]).clamp(0, 512))
@@ -167,28 +169,28 @@ def test_acting_policy_clips_to_the_arena() -> None:
     chunk_n = torch.zeros(12, 2)
     chunk_n[:, 0] = 100.0  # far beyond 512 px
     chunk_n[:, 1] = -100.0  # far below 0 px
-    acting = ActingPolicy(_constant_mse(chunk_n), [0.0] * 5, [1.0] * 5, [256.0, 256.0], [100.0, 100.0]).eval()
+    acting = _acting(_constant_mse(chunk_n), [0.0] * 5, [1.0] * 5, [256.0, 256.0], [100.0, 100.0])
     out = acting(torch.zeros(2, 5))
     assert torch.all(out[..., 0] == 512.0) and torch.all(out[..., 1] == 0.0)
 
 
 def test_acting_policy_guards_zero_std() -> None:
     policy = MSEPolicy().eval()
-    acting = ActingPolicy(policy, [0.0] * 5, [0.0, 1.0, 1.0, 1.0, 1.0], [0.0, 0.0], [0.0, 1.0]).eval()
-    assert acting.state_std[0] == 1.0 and acting.action_std[0] == 1.0
+    acting = _acting(policy, [0.0] * 5, [0.0, 1.0, 1.0, 1.0, 1.0], [0.0, 0.0], [0.0, 1.0])
+    assert policy.normalizer.state_std[0] == 1.0 and policy.normalizer.action_std[0] == 1.0
     assert torch.isfinite(acting(torch.rand(2, 5) * 512)).all()
 
 
 def test_acting_policy_rejects_wrong_statistics() -> None:
-    with pytest.raises(ValueError, match="state_mean must have 5 values"):
-        ActingPolicy(MSEPolicy(), [0.0] * 4, [1.0] * 5, [0.0] * 2, [1.0] * 2)
-    with pytest.raises(ValueError, match="action_std must be finite"):
-        ActingPolicy(MSEPolicy(), [0.0] * 5, [1.0] * 5, [0.0] * 2, [1.0, float("nan")])
+    with pytest.raises(ValueError, match="state_mean must be a list of 5"):
+        _acting(MSEPolicy(), [0.0] * 4, [1.0] * 5, [0.0] * 2, [1.0] * 2)
+    with pytest.raises(ValueError, match="action_std must hold finite numbers"):
+        _acting(MSEPolicy(), [0.0] * 5, [1.0] * 5, [0.0] * 2, [1.0, float("nan")])
 
 
 def test_acting_flow_uses_the_given_noise() -> None:
     torch.manual_seed(0)
-    acting = ActingPolicy(FlowPolicy(), [250.0] * 5, [100.0] * 5, [250.0, 250.0], [100.0, 100.0]).eval()
+    acting = _acting(FlowPolicy(), [250.0] * 5, [100.0] * 5, [250.0, 250.0], [100.0, 100.0])
     state, noise = torch.rand(3, 5) * 512, torch.randn(3, 12, 2)
     out = acting(state, noise)
     assert out.shape == (3, 12, 2) and out.min() >= 0 and out.max() <= 512
@@ -210,12 +212,10 @@ COMBINED = {
 VARIANTS = [("mse", MSE_VARIANT), ("mse", COMBINED["mse"]), ("flow", FLOW_VARIANT), ("flow", COMBINED["flow"])]
 
 
-def _variant(kind: str, arch: dict, norm: Normalizer | None = None, seed: int = 0):
+def _variant(kind: str, arch: dict, data=None, seed: int = 0):
     torch.manual_seed(seed)
     policy = build_policy(kind, **arch)
-    if norm is not None:
-        policy.set_input_normalization(norm.state_mean, norm.state_std)
-    return policy
+    return _fitted(policy, data) if data is not None else policy
 
 
 def test_variant_parameter_counts() -> None:
@@ -244,6 +244,15 @@ def test_default_architecture_lists_no_variant_keys() -> None:
         assert not any(name.startswith("angle_") for name in build_policy(kind).state_dict())
 
 
+@pytest.mark.parametrize("kind, arch", VARIANTS)
+def test_the_normalization_is_not_in_the_weights(kind: str, arch: dict) -> None:
+    """The card carries the statistics; the state_dict (the safetensors file) holds weights only, so no copy can disagree."""
+    policy = build_policy(kind, **arch)
+    assert not any(name.startswith("normalizer.") or name.startswith("angle_") for name in policy.state_dict())
+    assert {name for name, _ in policy.named_buffers() if name.startswith("normalizer.")} == {
+        "normalizer.state_mean", "normalizer.state_std", "normalizer.action_mean", "normalizer.action_std"}
+
+
 @pytest.mark.parametrize(
     "kind, kwargs, message",
     [
@@ -264,7 +273,7 @@ def test_bad_variants_are_named(kind: str, kwargs: dict, message: str) -> None:
 def test_sincos_sees_the_raw_angle() -> None:
     policy = build_policy("mse", angle_encoding="sincos")
     mean, std = torch.tensor([1.0, 2.0, 3.0, 4.0, 2.5]), torch.tensor([2.0, 2.0, 2.0, 2.0, 1.5])
-    policy.set_input_normalization(mean, std)
+    policy.normalizer.set({"state_mean": mean, "state_std": std, "action_mean": [0.0] * 2, "action_std": [1.0] * 2})
     raw = torch.tensor([[10.0, 20.0, 30.0, 40.0, 0.7], [1.0, 2.0, 3.0, 4.0, 0.7 + 2 * torch.pi]])
     encoded = policy.encode_state((raw - mean) / std)
     expected_angle = torch.tensor([0.7, 0.7])
@@ -275,9 +284,7 @@ def test_sincos_sees_the_raw_angle() -> None:
 
 def test_sincos_output_is_periodic_in_the_angle() -> None:
     mean, std = [100.0, 100.0, 100.0, 100.0, 3.0], [50.0, 50.0, 50.0, 50.0, 2.0]
-    policy = _variant("flow", FLOW_VARIANT)
-    policy.set_input_normalization(mean, std)
-    acting = ActingPolicy(policy, mean, std, [256.0] * 2, [100.0] * 2).eval()
+    acting = _acting(_variant("flow", FLOW_VARIANT), mean, std, [256.0] * 2, [100.0] * 2)
     state = torch.tensor([[120.0, 80.0, 300.0, 250.0, 1.0]])
     noise = torch.randn(1, 12, 2)
     turned = state.clone()
@@ -287,18 +294,42 @@ def test_sincos_output_is_periodic_in_the_angle() -> None:
     assert not torch.allclose(acting(state, noise), acting(turned, noise), atol=1e-3)
 
 
-def test_sincos_needs_the_input_normalization() -> None:
-    policy = build_policy("flow", **FLOW_VARIANT)
-    with pytest.raises(ValueError, match="set_input_normalization"):
+@pytest.mark.parametrize("kind", KINDS)
+def test_loss_and_acting_need_the_normalization(kind: str) -> None:
+    policy = build_policy(kind, **FLOW_VARIANT)
+    with pytest.raises(ValueError, match="no normalization yet"):
         policy.compute_loss(torch.randn(4, 5), torch.randn(4, 12, 2))
-    with pytest.raises(ValueError, match="set_input_normalization"):
-        ActingPolicy(policy, [0.0] * 5, [1.0] * 5, [0.0] * 2, [1.0] * 2)
-    policy.set_input_normalization([0.0] * 5, [1.0] * 4 + [2.0])
-    with pytest.raises(ValueError, match="angle normalization"):
-        ActingPolicy(policy, [0.0] * 5, [1.0] * 5, [0.0] * 2, [1.0] * 2)
-    ActingPolicy(policy, [0.0] * 5, [1.0] * 4 + [2.0], [0.0] * 2, [1.0] * 2)
-    with pytest.raises(ValueError, match="5 values"):
-        policy.set_input_normalization([0.0] * 4, [1.0] * 4)
+    with pytest.raises(ValueError, match="no normalization yet"):
+        ActingPolicy(policy)
+    with pytest.raises(ValueError, match="state_std must be a list of 5"):
+        policy.normalizer.set({**IDENTITY, "state_std": [1.0] * 4})
+    policy.normalizer.set(IDENTITY)
+    assert ActingPolicy(policy).policy is policy
+
+
+@pytest.mark.parametrize("kind, frame", [("mse", "absolute"), ("mse", "agent"), ("flow", "agent")])
+def test_loss_converts_env_units_as_acting_does(kind: str, frame: str, real_batch) -> None:
+    """compute_loss(env units) is the normalized loss of the normalizer's view, frame included: the inverse of acting's conversion."""
+    states, chunks, data = real_batch
+    policy = _fitted(build_policy(kind, action_frame=frame, dropout=0.0), data)
+    norm = policy.normalizer
+    chunk_n = norm.chunk(states, chunks)
+    expected_rel = chunks - states[:, None, :2] if frame == "agent" else chunks
+    torch.testing.assert_close(chunk_n, (expected_rel - norm.action_mean) / norm.action_std)
+    torch.testing.assert_close(norm.actions(states, chunk_n), chunks, atol=1e-3, rtol=0)
+    gen = {"generator": torch.Generator().manual_seed(3)} if kind == "flow" else {}
+    again = {"generator": torch.Generator().manual_seed(3)} if kind == "flow" else {}
+    assert torch.equal(policy.compute_loss(states, chunks, **gen), policy.normalized_loss(norm.state(states), chunk_n, **again))
+
+
+def test_state_noise_is_added_to_the_normalized_states() -> None:
+    policy = build_policy("mse", dropout=0.0).eval()
+    policy.normalizer.set({**IDENTITY, "state_std": [100.0] * 5})
+    seen: list[torch.Tensor] = []
+    policy.net.register_forward_pre_hook(lambda module, args: seen.append(args[0].clone()))
+    states = torch.full((20000, 5), 300.0)
+    policy.compute_loss(states, torch.zeros(20000, 12, 2), state_noise=0.05)
+    assert abs(float(seen[0].mean()) - 3.0) < 0.01 and abs(float(seen[0].std()) - 0.05) < 0.002
 
 
 @pytest.mark.parametrize("kind", KINDS)
@@ -329,8 +360,8 @@ def test_sinusoidal_time_is_not_saved_but_rebuilt() -> None:
 
 @pytest.mark.parametrize("kind, arch", VARIANTS)
 def test_variants_learn_on_real_windows(kind: str, arch: dict, real_batch) -> None:
-    states, chunks, norm = real_batch
-    before, after = _loss_before_and_after_training(_variant(kind, arch, norm), states, chunks, steps=100)
+    states, chunks, data = real_batch
+    before, after = _loss_before_and_after_training(_variant(kind, arch, data), states, chunks, steps=100)
     # measured: mse 0.94 -> 0.03, flow 1.99 -> 1.14 on this batch after 100 steps
     assert after < 0.7 * before, (before, after)
 
@@ -339,17 +370,19 @@ def test_variants_learn_on_real_windows(kind: str, arch: dict, real_batch) -> No
 def test_variant_checkpoint_round_trip(kind: str, real_batch, tmp_path) -> None:
     from training.checkpoint import load_acting_policy, load_checkpoint, save_checkpoint
 
-    _, _, norm = real_batch
-    policy = _variant(kind, COMBINED[kind], norm).eval()
-    card = save_checkpoint(tmp_path / kind, policy, norm.to_dict(), git_commit="test")
+    _, _, data = real_batch
+    policy = _variant(kind, COMBINED[kind], data).eval()
+    card = save_checkpoint(tmp_path / kind, policy, git_commit="test")
     assert card["num_parameters"] == count_parameters(policy)
     assert card["architecture"] == policy.architecture
+    assert card["normalization"] == policy.normalizer.to_dict()
     loaded, _ = load_checkpoint(tmp_path / kind)
-    torch.testing.assert_close(loaded.angle_std, torch.tensor([float(norm.state_std[-1])]), rtol=0, atol=0)
+    for key in card["normalization"]:
+        assert torch.equal(getattr(loaded.normalizer, key), getattr(policy.normalizer, key))
     state, noise = torch.randn(6, 5), torch.randn(6, 12, 2)
     with torch.no_grad():
         assert torch.equal(loaded.sample_actions(state, noise=noise), policy.sample_actions(state, noise=noise))
-    acting = load_acting_policy(tmp_path / kind)  # checks the stored angle statistics against the card's
+    acting = load_acting_policy(tmp_path / kind)
     assert acting(torch.rand(2, 5) * 512, *([noise[:2]] if kind == "flow" else [])).shape == (2, 12, 2)
 
 
@@ -358,8 +391,8 @@ def test_variant_onnx_export_agrees_with_torch(kind: str, real_batch, tmp_path) 
     from training.checkpoint import save_checkpoint
     from training.export import VERIFY_ATOL, export_onnx
 
-    _, _, norm = real_batch
-    save_checkpoint(tmp_path / kind, _variant(kind, COMBINED[kind], norm), norm.to_dict(), git_commit="test")
+    _, _, data = real_batch
+    save_checkpoint(tmp_path / kind, _variant(kind, COMBINED[kind], data), git_commit="test")
     info = export_onnx(tmp_path / kind, tmp_path / f"{kind}.onnx", num_steps=4)
     assert info["max_abs_diff"] <= VERIFY_ATOL
 

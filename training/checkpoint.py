@@ -1,8 +1,9 @@
 """Safe checkpoints: a stem DIR/NAME is NAME.safetensors (weights only) + NAME.json (the card).
 
-The card holds everything needed to rebuild the policy and to act (kind, architecture, normalization),
-plus how it was made (config, steps, wall time, evaluation, git commit, ONNX export). Loading reads
-only safetensors and JSON, never pickle; every problem raises `CheckpointError` naming the file.
+The card holds everything needed to rebuild the policy and to act (kind, architecture, and the
+normalization its `policy.normalizer` holds), plus how it was made (config, steps, wall time,
+evaluation, git commit, ONNX export). Loading reads only safetensors and JSON, never pickle; every
+problem raises `CheckpointError` naming the file.
 """
 
 from __future__ import annotations
@@ -18,8 +19,10 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from acting.card import CARD_FIELDS, NORMALIZATION_KEYS, CardError, check_normalization, read_card, validate_card
-from training.policies import POLICY_KINDS, ActingPolicy, build_policy, count_parameters
+from acting.card import CardError, read_card, validate_card
+from pusht.spec import DEFAULT_NUM_STEPS, POLICY_KINDS
+from training.networks import count_parameters
+from training.policies import ActingPolicy, build_policy
 
 WEIGHTS_SUFFIX = ".safetensors"
 CARD_SUFFIX = ".json"
@@ -29,14 +32,20 @@ CheckpointError = CardError
 """A checkpoint file is missing, corrupt, or does not match its card (the one error of `acting.card`)."""
 
 
-def save_checkpoint(stem: str | Path, policy: torch.nn.Module, normalization: dict[str, Any], **card_fields: Any) -> dict[str, Any]:
-    """Write STEM.safetensors and STEM.json; returns the card. Extra card fields (config, steps, ...) pass through."""
+def save_checkpoint(stem: str | Path, policy: torch.nn.Module, normalization: Any = None, **card_fields: Any) -> dict[str, Any]:
+    """Write STEM.safetensors and STEM.json; returns the card. Extra card fields (config, steps, ...) pass through.
+
+    The card's normalization is the policy's own; `normalization` (a card-style dict), when given, is
+    first set on the policy (one built fresh, without statistics yet).
+    """
     stem = checkpoint_stem(stem)
     if isinstance(policy, ActingPolicy):
         policy = policy.policy
     kind = getattr(policy, "kind", None)
     if kind not in POLICY_KINDS:
         raise ValueError(f"policy must be an MSEPolicy or FlowPolicy, got {type(policy).__name__}")
+    if normalization is not None:
+        policy.normalizer.set(normalization)
     architecture = policy.architecture
     card: dict[str, Any] = {
         "name": stem.name,
@@ -44,7 +53,7 @@ def save_checkpoint(stem: str | Path, policy: torch.nn.Module, normalization: di
         "architecture": architecture,
         "num_parameters": count_parameters(policy),
         "config": {},
-        "normalization": check_normalization(_normalization_lists(normalization), architecture),
+        "normalization": policy.normalizer.to_dict(),
         "steps": 0,
         "wall_time_s": 0.0,
         "evaluation": None,
@@ -87,6 +96,9 @@ def load_checkpoint(stem: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
     expected = policy.state_dict()
     missing = sorted(set(expected) - set(weights))
     unexpected = sorted(set(weights) - set(expected))
+    if {"angle_mean", "angle_std"} & set(unexpected):
+        raise CheckpointError(f"{weights_path}: written before the policy owned its normalization (angle_mean/angle_std, copies of "
+                              f"the card's): convert it once with python scripts/convert_checkpoints.py {stem}")
     if missing or unexpected:
         raise CheckpointError(
             f"{weights_path}: weights do not fit the card's {card['kind']} architecture (missing {missing[:5]}, unexpected {unexpected[:5]})"
@@ -101,15 +113,15 @@ def load_checkpoint(stem: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
         if not torch.isfinite(tensor).all():
             raise CheckpointError(f"{weights_path}: weight {key} contains NaN or inf")
     policy.load_state_dict(weights, strict=True)
+    policy.normalizer.set(card["normalization"])  # validated by read_card
     policy.eval()
     return policy, card
 
 
-def load_acting_policy(stem: str | Path, num_steps: int = 10) -> ActingPolicy:
-    """The checkpoint's policy wrapped with its normalization (eval mode): env units in, clipped actions out."""
-    policy, card = load_checkpoint(stem)
-    acting = ActingPolicy(policy, num_steps=num_steps, **card["normalization"])
-    return acting.eval()
+def load_acting_policy(stem: str | Path, num_steps: int = DEFAULT_NUM_STEPS) -> ActingPolicy:
+    """The checkpoint's policy as an acting module (eval mode): env units in, clipped actions out."""
+    policy, _ = load_checkpoint(stem)
+    return ActingPolicy(policy, num_steps=num_steps).eval()
 
 
 def load_card(stem: str | Path) -> dict[str, Any]:
@@ -197,21 +209,3 @@ def _read_weights(path: Path) -> dict[str, torch.Tensor]:
     except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
         raise CheckpointError(f"{path}: not a readable safetensors file: {exc}") from None
 
-
-def _normalization_lists(normalization: Any) -> dict[str, Any]:
-    """Plain float lists from a dict of arrays/tensors/lists (or an object with to_dict())."""
-    if hasattr(normalization, "to_dict"):
-        normalization = normalization.to_dict()
-    if not isinstance(normalization, dict):
-        raise ValueError(f"normalization must be a dict with {list(NORMALIZATION_KEYS)}, got {type(normalization).__name__}")
-    out: dict[str, Any] = {}
-    for key in NORMALIZATION_KEYS:
-        if key not in normalization:
-            raise ValueError(f"normalization is missing {key!r}")
-        value = normalization[key]
-        if isinstance(value, torch.Tensor):
-            value = value.detach().cpu().double().reshape(-1).tolist()
-        elif hasattr(value, "tolist"):
-            value = value.tolist()
-        out[key] = [float(v) for v in value] if isinstance(value, (list, tuple)) else value
-    return out

@@ -97,15 +97,13 @@ def distill(cfg: DistillConfig):
     teacher.eval()
     student = build_policy("flow", **card["architecture"])
     student.load_state_dict(teacher.state_dict())
-    normalization = card["normalization"]
+    student.normalizer.set(teacher.normalizer)
     states = np.concatenate([load_replay(p).states for p in [cfg.data, *filter(None, cfg.extra_states.split(","))]])
     run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), may_change=RESUMABLE_CHANGES)
     try:
-        mean = torch.tensor(normalization["state_mean"], dtype=torch.float32)
-        std = ActingPolicy(teacher, **normalization).state_std
         generator = torch.Generator().manual_seed(cfg.seed)
         rows = torch.randint(0, len(states), (cfg.pairs,), generator=generator)
-        s = (torch.as_tensor(states, dtype=torch.float32)[rows] - mean) / std
+        s = teacher.normalizer.state(torch.as_tensor(states, dtype=torch.float32)[rows])
         noise = torch.randn((cfg.pairs, student.horizon, student.action_dim), generator=generator)
         with torch.no_grad():
             target = torch.cat([teacher.sample_actions(s[i : i + 4096], noise[i : i + 4096], cfg.teacher_steps) for i in range(0, cfg.pairs, 4096)])
@@ -131,13 +129,13 @@ def distill(cfg: DistillConfig):
                 raise ValueError(f"stopped by {run.stop_signal} at step {step}; distillation is short: start it again with another --name")
         bar.close()
         student.eval()
-        summary = evaluate_policy(ActingPolicy(student, num_steps=cfg.student_steps, **normalization), episodes=cfg.eval_episodes,
+        summary = evaluate_policy(ActingPolicy(student, num_steps=cfg.student_steps), episodes=cfg.eval_episodes,
                                   seed=cfg.eval_seed)
         evaluation = {"step": cfg.steps, **{k: v for k, v in summary.scores().items() if k != "wall_time_s"}}
         run.log({"type": "eval", **evaluation, "seeds": summary.seeds})
         plot_learning_curve(run.records, run.dir / "learning_curve.png")
         reproduce = {"distill": command_line(DistillConfig, PROG, cfg.to_dict(), always=("teacher", "name", "student_steps"))}
-        save_checkpoint(str(run.dir / "last"), student, normalization, name="flow", config=cfg.to_dict(), git_commit=git_commit(),
+        save_checkpoint(str(run.dir / "last"), student, name="flow", config=cfg.to_dict(), git_commit=git_commit(),
                         steps=cfg.steps, wall_time_s=run.elapsed_s, evaluation=evaluation, finished=True, reproduce=reproduce,
                         sampler_steps=cfg.student_steps, teacher=str(cfg.teacher))
         run.finish(cfg.steps)

@@ -63,13 +63,15 @@ class NoiseAgent:
             added = {"steering_dims": cfg.steering_dims_list()}
         self.policy = build_policy("flow", **{**base_card["architecture"], **added})
         missing, unexpected = self.policy.load_state_dict(base.state_dict(), strict=False)
+        self.policy.normalizer.set(base.normalizer)
         if unexpected or any(not k.startswith(("steering.", "selector.")) for k in missing):
             raise ValueError(f"{cfg.init}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
         # The flow stays frozen because only the steering is optimized: no loss reaches the flow (rollouts
         # run without grad), and leaving requires_grad alone keeps the card's parameter count whole.
         self.policy.eval()
-        self.normalization = base_card["normalization"]
-        self.acting = ActingPolicy(self.policy, num_steps=cfg.flow_num_steps, **self.normalization)
+        self.normalization = self.policy.normalizer.to_dict()
+        self.num_steps = cfg.flow_num_steps
+        self.acting = ActingPolicy(self.policy, num_steps=cfg.flow_num_steps)
         self.steering = self.policy.steering
         self.noise_scale = self.policy.noise_scale
         self.chunk_shape = (self.policy.horizon, self.policy.action_dim)
@@ -78,7 +80,7 @@ class NoiseAgent:
     @torch.no_grad()
     def encode(self, state: torch.Tensor) -> torch.Tensor:
         """The policy's view [N, S'] of env-unit states [N, 5]: normalized, the angle as sin and cos."""
-        return self.policy.encode_state((state - self.acting.state_mean) / self.acting.state_std)
+        return self.policy.encode_state(self.policy.normalizer.state(state))
 
     @torch.no_grad()
     def observe(self, envs: ChunkVectorEnv) -> tuple[torch.Tensor, torch.Tensor]:
@@ -97,7 +99,7 @@ class NoiseAgent:
     @torch.no_grad()
     def chunks(self, envs: ChunkVectorEnv, x0: torch.Tensor) -> np.ndarray:
         """The env-unit chunks [N, H, A] the flow integrates from starts x0 in the envs' states."""
-        return self.acting.from_start(torch.as_tensor(envs.obs, dtype=torch.float32), x0).numpy()
+        return self.policy.act_from_start(torch.as_tensor(envs.obs, dtype=torch.float32), x0, self.num_steps).numpy()
 
 
 def _chunk_reward(result, cfg: FinetuneConfig) -> torch.Tensor:
@@ -210,7 +212,7 @@ class _QSelect(_Resumable):
         starts = agent.noise_scale * torch.randn((m * k, *agent.chunk_shape), generator=self.generator)
         states = torch.as_tensor(envs.obs[rows.numpy()], dtype=torch.float32).repeat_interleave(k, dim=0)
         with torch.no_grad():
-            chunks = agent.acting.from_start(states, starts).numpy().reshape(m, k, *agent.chunk_shape)
+            chunks = agent.policy.act_from_start(states, starts, agent.num_steps).numpy().reshape(m, k, *agent.chunk_shape)
         steps = [envs.lookahead(int(i), chunks[j]) for j, i in enumerate(rows)]
         next_obs = np.concatenate([s.next_obs for s in steps])
         next_enc = agent.encode(torch.as_tensor(next_obs, dtype=torch.float32))

@@ -26,7 +26,6 @@ from torch import nn
 
 from training.config import TrainConfig, parse_config
 from training.curves import plot_learning_curve
-from training.data import training_windows  # noqa: F401  (imported from here by tests/test_collect.py)
 from training.distributed import Distributed, progress_bar
 from training.run import Run, RunStopped, pack_optimizer, pack_rng, unpack_optimizer, unpack_rng
 
@@ -47,7 +46,6 @@ def main(argv: list[str] | None = None) -> int:
 def train(cfg: TrainConfig) -> Run:
     """Run (or resume) one training as configured; returns its Run (folder in `.dir`)."""
     from training.checkpoint import save_checkpoint, update_card
-    from training.policies import ActingPolicy
 
     ctx, run = Distributed.start(), None
     try:
@@ -65,9 +63,6 @@ def train(cfg: TrainConfig) -> Run:
             env_factory(cfg.eval_env)()  # fail now, not after hours of training, if the env is missing
 
         policy, data = _policy_and_data(cfg)
-        normalization = data.normalizer.to_dict()
-        # sin/cos angle encoding needs the raw angle back from the normalized state; a no-op otherwise
-        policy.set_input_normalization(data.normalizer.state_mean, data.normalizer.state_std)
         policy.train()
         model: nn.Module = _LossModule(policy)
         if ctx.world_size > 1:
@@ -86,7 +81,7 @@ def train(cfg: TrainConfig) -> Run:
             print(f"{cfg.policy} policy: {sum(p.numel() for p in policy.parameters())} parameters, "
                   f"architecture {policy.architecture}", file=sys.stderr)
 
-        # kind, architecture, num_parameters and normalization are derived by save_checkpoint itself
+        # kind, architecture, num_parameters and normalization (the policy's) are derived by save_checkpoint itself
         card = {"name": cfg.policy, "config": cfg.to_dict()}
         local_batch = cfg.batch_size // ctx.world_size
         batches_per_epoch = len(data) // cfg.batch_size
@@ -97,7 +92,7 @@ def train(cfg: TrainConfig) -> Run:
             rng_states = ctx.gather(torch.get_rng_state())
             if not ctx.is_main:
                 return
-            save_checkpoint(str(run.dir / "last"), policy, normalization, **card, steps=step,
+            save_checkpoint(str(run.dir / "last"), policy, **card, steps=step,
                             wall_time_s=run.elapsed_s, evaluation=evaluation, finished=False)
             optimizer_tensors, optimizer_json = pack_optimizer(optimizer)
             tensors = {**{f"model.{k}": v for k, v in policy.state_dict().items()}, **optimizer_tensors,
@@ -125,11 +120,7 @@ def train(cfg: TrainConfig) -> Run:
             for group in optimizer.param_groups:
                 group["lr"] = lr
             noise_std = state_noise_std(cfg, progress)
-            state_batch = data.states[idx]
-            if noise_std > 0:
-                state_batch = state_batch + noise_std * torch.randn_like(state_batch)
-
-            loss = model(state_batch, data.chunks[idx])
+            loss = model(data.states[idx], data.chunks[idx], noise_std)  # env units: the policy normalizes
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -161,14 +152,14 @@ def train(cfg: TrainConfig) -> Run:
                 if ctx.is_main:
                     try:
                         with run.interruptible():  # a stop must not wait for a long evaluation
-                            evaluation = _evaluate(policy, normalization, cfg, ActingPolicy, step)
+                            evaluation = _evaluate(policy, cfg, step)
                     except RunStopped:
                         pass  # this step's evaluation is lost; its weights are saved below
                 if evaluation is not None:
                     run.log({"type": "eval", **evaluation})
                     if best_reward is None or evaluation["mean_max_reward"] > best_reward:
                         best_reward = evaluation["mean_max_reward"]
-                        save_checkpoint(str(run.dir / "best"), policy, normalization, **card, steps=step,
+                        save_checkpoint(str(run.dir / "best"), policy, **card, steps=step,
                                         wall_time_s=run.elapsed_s, evaluation=evaluation)
                     if bar is not None:
                         bar.set_postfix(loss=f"{loss_value:.4f}", eval=f"{evaluation['mean_max_reward']:.3f}")
@@ -185,7 +176,7 @@ def train(cfg: TrainConfig) -> Run:
             bar.close()
         if step == cfg.steps:
             if ctx.is_main:
-                save_checkpoint(str(run.dir / "last"), policy, normalization, **card, steps=cfg.steps,
+                save_checkpoint(str(run.dir / "last"), policy, **card, steps=cfg.steps,
                                 wall_time_s=run.elapsed_s, evaluation=_last_eval(run.records), finished=True)
                 if (run.dir / "best.json").is_file():
                     update_card(run.dir / "best", finished=True)
@@ -204,25 +195,24 @@ def train(cfg: TrainConfig) -> Run:
 
 
 def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
-    """The policy to train (fresh, or the --init checkpoint's) and its ready training set."""
+    """The policy to train (fresh and fitted on the demonstrations, or the --init checkpoint's) and its training set."""
     from training.checkpoint import load_checkpoint
-    from training.data import Normalizer, training_set
+    from training.data import training_set
     from training.policies import build_policy
 
-    base_normalizer = None
+    extra = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
+    data = training_set(cfg.data, cfg.horizon, cfg.pad_episode_end, extra, human_weight=cfg.human_weight,
+                        policy_step_weight=cfg.policy_step_weight, extra_stride=cfg.extra_stride)
+    if len(data) < cfg.batch_size:
+        raise ValueError(f"{cfg.data} has {len(data)} windows, fewer than batch_size {cfg.batch_size}")
     if cfg.init:
+        # the exported graph bakes the normalization in, so a fine-tuned policy keeps its base's
         policy, init_card = load_checkpoint(cfg.init)
         if init_card["kind"] != cfg.policy:
             raise ValueError(f"{cfg.init} is a {init_card['kind']} checkpoint, not {cfg.policy}")
-        # the exported graph bakes the normalization in, so a fine-tuned policy keeps its base's
-        base_normalizer = Normalizer.from_dict(init_card["normalization"])
     else:
         policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, **cfg.architecture_overrides()})
-    extra = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
-    data = training_set(cfg.data, cfg.horizon, policy.action_frame, cfg.pad_episode_end, extra, base_normalizer,
-                        human_weight=cfg.human_weight, policy_step_weight=cfg.policy_step_weight, extra_stride=cfg.extra_stride)
-    if len(data) < cfg.batch_size:
-        raise ValueError(f"{cfg.data} has {len(data)} windows, fewer than batch_size {cfg.batch_size}")
+        policy.normalizer.set(data.statistics(policy.action_frame))
     return policy, data
 
 
@@ -261,17 +251,18 @@ class _LossModule(nn.Module):
         super().__init__()
         self.policy = policy
 
-    def forward(self, state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
-        return self.policy.compute_loss(state, chunk)
+    def forward(self, state: torch.Tensor, chunk: torch.Tensor, state_noise: float = 0.0) -> torch.Tensor:
+        return self.policy.compute_loss(state, chunk, state_noise)
 
 
-def _evaluate(policy: nn.Module, normalization: dict, cfg: TrainConfig, acting_cls: Any, step: int) -> dict[str, Any]:
+def _evaluate(policy: nn.Module, cfg: TrainConfig, step: int) -> dict[str, Any]:
     from training.evaluate import evaluate_policy
+    from training.policies import ActingPolicy
 
     policy.eval()
     try:
         summary = evaluate_policy(
-            acting_cls(policy, num_steps=cfg.flow_num_steps, **normalization),
+            ActingPolicy(policy, num_steps=cfg.flow_num_steps),
             episodes=cfg.eval_episodes,
             seed=cfg.eval_seed,
             num_envs=cfg.eval_num_envs or None,
