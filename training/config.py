@@ -12,15 +12,14 @@ import json
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from pusht.spec import DEFAULT_HORIZON, DEFAULT_NUM_STEPS, POLICY_KINDS, TRAIN_EVAL_SEED
 from training.cli import HelpFormatter, build_parser as _build_parser, command_line as _command_line, option as _f
 
 __all__ = ["HelpFormatter", "TrainConfig", "build_parser", "command_line", "parse_config"]
 
 PROG = "python -m training.train"
-POLICY_KINDS = ("mse", "flow")
 NOISE_SCHEDULES = ("linear", "cosine", "constant")
 EVAL_ENVS = ("pusht", "gym-pusht")
-
 
 
 @dataclass
@@ -43,8 +42,8 @@ class TrainConfig:
     lr: float = _f(3e-4, "AdamW peak learning rate (cosine decay to 0, no warmup)")
     weight_decay: float = _f(1e-4, "AdamW weight decay")
     dropout: float = _f(0.1, "dropout of the policy MLP")
-    arch: str = _f("{}", "extra policy constructor kwargs as JSON, e.g. '{\"hidden_dim\": 512}'")
-    horizon: int = _f(12, "actions per chunk")
+    arch: str = _f("{}", "extra policy constructor kwargs as JSON, e.g. '{\"hidden_dims\": [256, 256], \"action_frame\": \"agent\"}' (keys: training.architecture)")
+    horizon: int = _f(DEFAULT_HORIZON, "actions per chunk")
     pad_episode_end: bool = _f(False, "also train on windows starting in an episode's last horizon-1 frames, their chunks padded with its last action")
     # 0.05 is the recipe; policy-quality.md measured 0.15 and 0.3 hurting, 0.02 and 0.05 within noise.
     state_noise_start: float = _f(0.05, "std of Gaussian noise on normalized training states at step 0")
@@ -52,12 +51,12 @@ class TrainConfig:
     state_noise_schedule: str = _f("linear", "how the noise std moves from start to end", choices=NOISE_SCHEDULES)
     eval_every: int = _f(10_000, "evaluate every N steps (0: only at the end; -1: never)")
     eval_episodes: int = _f(100, "episodes per evaluation")
-    eval_seed: int = _f(100_000, "first episode seed of evaluation (seeds eval_seed..eval_seed+eval_episodes-1)")
+    eval_seed: int = _f(TRAIN_EVAL_SEED, "first episode seed of evaluation (seeds eval_seed..eval_seed+eval_episodes-1)")
     eval_num_envs: int = _f(0, "envs in lockstep during evaluation (0: all episodes at once)")
     eval_env: str = _f("pusht", "evaluation env: ours (pusht) or the reference gym-pusht", choices=EVAL_ENVS)
     eval_max_steps: int = _f(300, "episode step limit in evaluation")
-    action_horizon: int = _f(12, "actions of each chunk executed open loop in evaluation")
-    flow_num_steps: int = _f(10, "flow: Euler steps when sampling in evaluation")
+    action_horizon: int = _f(DEFAULT_HORIZON, "actions of each chunk executed open loop in evaluation")
+    flow_num_steps: int = _f(DEFAULT_NUM_STEPS, "flow: Euler steps when sampling in evaluation")
     log_every: int = _f(100, "write a log.jsonl record every N steps")
     # about 10-30 s of flow training on 2 cores: what a SIGKILL can lose
     checkpoint_every: int = _f(1000, "save a resumable state and the `last` checkpoint every N steps (0: only at evaluations and stops)")
