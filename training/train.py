@@ -210,8 +210,13 @@ def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
         policy, init_card = load_checkpoint(cfg.init)
         if init_card["kind"] != cfg.policy:
             raise ValueError(f"{cfg.init} is a {init_card['kind']} checkpoint, not {cfg.policy}")
+        if policy.horizon != cfg.horizon:
+            raise ValueError(f"{cfg.init} predicts {policy.horizon}-action chunks, not --horizon {cfg.horizon}")
     else:
-        policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, **cfg.architecture_overrides()})
+        overrides = cfg.architecture_overrides()
+        if overrides.get("horizon", cfg.horizon) != cfg.horizon:
+            raise ValueError(f"--arch horizon {overrides['horizon']} differs from --horizon {cfg.horizon}: give it once")
+        policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, "horizon": cfg.horizon, **overrides})
         policy.normalizer.set(data.statistics(policy.action_frame))
     return policy, data
 
