@@ -1,4 +1,4 @@
-"""Fixtures shared by the service tests: the random-weight test models and a real server over them or the shipped ones."""
+"""Shared fixtures: the random-weight test models and a real server over them or the shipped ones (service tests); real windows (policy tests)."""
 
 from __future__ import annotations
 
@@ -32,3 +32,15 @@ def server(request: pytest.FixtureRequest):
         models_dir = request.getfixturevalue("test_models")
     with UvicornProcess({"PUSHT_MODELS_DIR": str(models_dir), "PUSHT_MAX_STATES": "64"}) as srv:
         yield srv
+
+
+@pytest.fixture(scope="module")
+def real_batch():
+    """64 env-unit windows spread over the real dataset, and the training set (its `statistics` fit a policy)."""
+    import torch
+
+    from training.data import DEFAULT_DATASET, training_set
+
+    data = training_set(DEFAULT_DATASET)
+    idx = torch.linspace(0, len(data) - 1, 64).long()
+    return data.states[idx], data.chunks[idx], data

@@ -17,7 +17,7 @@ def test_table_of_the_real_records():
     records = sorted(p.name for p in (REPO / "records").iterdir() if (p / "last.json").is_file())
     assert len(rows) == 2 * len(records)  # final and best of each
     shipped = {row.split(" | ")[0].lstrip("| "): row.rstrip(" |").rsplit(" | ", 1)[-1] for row in rows if " final " in row}
-    assert shipped["flow-agentframe-padend-150k-noise0.6"] == "flow" and shipped["mse-sincos-skip-100k"] == "mse"
+    assert shipped["flow-agentframe-padend-150k-noise0.3"] == "flow" and shipped["mse-sincos-skip-100k"] == "mse"
 
 
 def test_no_records_is_a_one_line_error(tmp_path):
