@@ -15,7 +15,8 @@ from training.normalization import ACTION_FRAMES
 MSE_HIDDEN_DIMS = (128, 256, 256, 512)
 FLOW_HIDDEN_DIMS = (128, 256, 512, 512, 512)
 DEFAULT_DROPOUT = 0.1
-ANGLE_ENCODINGS = ("raw", "sincos")
+ANGLE_ENCODINGS = ("raw", "sincos", "keypoints")
+"""keypoints: sin/cos of the angle plus the tee's corners in the arena (training.features), as Diffusion Policy's keypoint observations"""
 TIME_EMBEDDINGS = ("scalar", "sinusoidal")
 DEFAULT_TIME_EMBEDDING_DIM = 32
 _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")

@@ -41,6 +41,7 @@ class TrainConfig:
     batch_size: int = _f(128, "global batch size (split across DDP ranks)")
     lr: float = _f(3e-4, "AdamW peak learning rate (cosine decay to 0, no warmup)")
     weight_decay: float = _f(1e-4, "AdamW weight decay")
+    ema_decay: float = _f(0.0, "evaluate and save an exponential moving average of the weights with this largest decay (e.g. 0.9999, warmed up as Diffusion Policy's EMA); 0: the raw weights")
     dropout: float = _f(0.1, "dropout of the policy MLP")
     arch: str = _f("{}", "extra policy constructor kwargs as JSON, e.g. '{\"hidden_dims\": [256, 256], \"action_frame\": \"agent\"}' (keys: training.architecture)")
     horizon: int = _f(DEFAULT_HORIZON, "actions per chunk")

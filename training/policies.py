@@ -20,6 +20,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from pusht.spec import ACTION_DIM, ACTION_HIGH, ACTION_LOW, DEFAULT_HORIZON, DEFAULT_NUM_STEPS, POLICY_KINDS, STATE_DIM
+from training.features import KEYPOINT_FEATURES, tee_keypoints
 from training.architecture import (
     DEFAULT_DROPOUT, DEFAULT_TIME_EMBEDDING_DIM, FLOW_ARCH_KEYS, FLOW_HIDDEN_DIMS, MSE_ARCH_KEYS, MSE_HIDDEN_DIMS,
     architecture_dict, check_architecture,
@@ -77,7 +78,7 @@ class _ChunkPolicy(nn.Module):
         self.action_frame = arch["action_frame"]
         self.normalizer = Normalizer(self.state_dim, self.action_dim, self.action_frame)
         self.angle_encoding = arch["angle_encoding"]
-        return self.state_dim + (self.angle_encoding == "sincos")
+        return self.state_dim + {"raw": 0, "sincos": 1, "keypoints": 1 + KEYPOINT_FEATURES}[self.angle_encoding]
 
     @property
     def architecture(self) -> dict[str, Any]:
@@ -94,11 +95,16 @@ class _ChunkPolicy(nn.Module):
         return self.net(inputs, encoded) if self.state_skip else self.net(inputs)
 
     def encode_state(self, state_n: torch.Tensor) -> torch.Tensor:
-        """The network's view of normalized states [B, S]: unchanged ("raw"), or the angle (last channel) as sin, cos of the raw angle."""
+        """The network's view of normalized states [B, S]: unchanged ("raw"), or the angle (last channel) as sin, cos of the raw
+        angle ("sincos"), and with "keypoints" the tee's corners in the arena too."""
         if self.angle_encoding == "raw":
             return state_n
-        angle = state_n[:, -1:] * self.normalizer.state_std[-1:] + self.normalizer.state_mean[-1:]
-        return torch.cat([state_n[:, :-1], torch.sin(angle), torch.cos(angle)], dim=1)
+        raw = state_n * self.normalizer.state_std + self.normalizer.state_mean
+        angle = raw[:, -1:]
+        parts = [state_n[:, :-1], torch.sin(angle), torch.cos(angle)]
+        if self.angle_encoding == "keypoints":
+            parts.append(tee_keypoints(raw[:, 2:5]))
+        return torch.cat(parts, dim=1)
 
     def compute_loss(self, state: torch.Tensor, action_chunk: torch.Tensor, state_noise: float = 0.0,
                      generator: torch.Generator | None = None) -> torch.Tensor:

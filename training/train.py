@@ -27,6 +27,7 @@ from torch import nn
 from training.config import TrainConfig, parse_config
 from training.curves import plot_learning_curve
 from training.distributed import Distributed, progress_bar
+from training.ema import WeightAverage
 from training.run import Run, RunStopped, pack_optimizer, pack_rng, unpack_optimizer, unpack_rng
 
 # fields that do not change what a run computes, so --resume accepts new values
@@ -64,6 +65,8 @@ def train(cfg: TrainConfig) -> Run:
 
         policy, data = _policy_and_data(cfg)
         policy.train()
+        ema = WeightAverage(policy, cfg.ema_decay) if cfg.ema_decay else None
+        shipped = ema.module if ema else policy  # what is evaluated and saved as a checkpoint
         model: nn.Module = _LossModule(policy)
         if ctx.world_size > 1:
             model = nn.parallel.DistributedDataParallel(model)
@@ -74,7 +77,7 @@ def train(cfg: TrainConfig) -> Run:
         # every check that can fail has passed: only now may the run folder change
         run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite,
                         is_main=ctx.is_main, may_change=RESUMABLE_CHANGES)
-        first_step, best_reward, order, batch_in_epoch = _restore(run, ctx, policy, optimizer, permutation_rng)
+        first_step, best_reward, order, batch_in_epoch = _restore(run, ctx, policy, optimizer, permutation_rng, ema)
         if ctx.is_main:
             print(f"world size: {ctx.world_size}  threads: {torch.get_num_threads()}  windows: {len(data)} "
                   f"({data.demo_windows} demonstration, {len(data) - data.demo_windows} extra)", file=sys.stderr)
@@ -92,10 +95,11 @@ def train(cfg: TrainConfig) -> Run:
             rng_states = ctx.gather(torch.get_rng_state())
             if not ctx.is_main:
                 return
-            save_checkpoint(str(run.dir / "last"), policy, **card, steps=step,
+            save_checkpoint(str(run.dir / "last"), shipped, **card, steps=step,
                             wall_time_s=run.elapsed_s, evaluation=evaluation, finished=False)
             optimizer_tensors, optimizer_json = pack_optimizer(optimizer)
             tensors = {**{f"model.{k}": v for k, v in policy.state_dict().items()}, **optimizer_tensors,
+                       **({f"ema.{k}": v for k, v in ema.state_dict().items()} if ema else {}),
                        **pack_rng({"permutation": permutation_rng}), "epoch_order": order,
                        **{f"rng.rank{r}.torch": t for r, t in enumerate(rng_states) if r}}
             run.save_state(step, tensors, {"optimizer": optimizer_json, "best_reward": best_reward,
@@ -124,6 +128,8 @@ def train(cfg: TrainConfig) -> Run:
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
+            if ema is not None:
+                ema.update(step)
 
             loss_value = loss.item()
             if not math.isfinite(loss_value):
@@ -152,14 +158,14 @@ def train(cfg: TrainConfig) -> Run:
                 if ctx.is_main:
                     try:
                         with run.interruptible():  # a stop must not wait for a long evaluation
-                            evaluation = _evaluate(policy, cfg, step)
+                            evaluation = _evaluate(shipped, cfg, step)
                     except RunStopped:
                         pass  # this step's evaluation is lost; its weights are saved below
                 if evaluation is not None:
                     run.log({"type": "eval", **evaluation})
                     if best_reward is None or evaluation["mean_max_reward"] > best_reward:
                         best_reward = evaluation["mean_max_reward"]
-                        save_checkpoint(str(run.dir / "best"), policy, **card, steps=step,
+                        save_checkpoint(str(run.dir / "best"), shipped, **card, steps=step,
                                         wall_time_s=run.elapsed_s, evaluation=evaluation)
                     if bar is not None:
                         bar.set_postfix(loss=f"{loss_value:.4f}", eval=f"{evaluation['mean_max_reward']:.3f}")
@@ -176,7 +182,7 @@ def train(cfg: TrainConfig) -> Run:
             bar.close()
         if step == cfg.steps:
             if ctx.is_main:
-                save_checkpoint(str(run.dir / "last"), policy, **card, steps=cfg.steps,
+                save_checkpoint(str(run.dir / "last"), shipped, **card, steps=cfg.steps,
                                 wall_time_s=run.elapsed_s, evaluation=_last_eval(run.records), finished=True)
                 if (run.dir / "best.json").is_file():
                     update_card(run.dir / "best", finished=True)
@@ -222,7 +228,7 @@ def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
 
 
 def _restore(run: Run, ctx: Distributed, policy: nn.Module, optimizer: torch.optim.Optimizer,
-             permutation_rng: torch.Generator) -> tuple[int, float | None, torch.Tensor | None, int]:
+             permutation_rng: torch.Generator, ema: WeightAverage | None) -> tuple[int, float | None, torch.Tensor | None, int]:
     """First step, best reward, epoch order and position from the saved state (fresh values without one)."""
     state = run.load_state()
     if state is None:
@@ -231,6 +237,8 @@ def _restore(run: Run, ctx: Distributed, policy: nn.Module, optimizer: torch.opt
     if saved["world_size"] != ctx.world_size:
         raise ValueError(f"{run.dir} ran on {saved['world_size']} ranks; resume it on as many, not {ctx.world_size}")
     policy.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    if ema is not None:
+        ema.load_state_dict({k[len("ema."):]: v for k, v in tensors.items() if k.startswith("ema.")})
     unpack_optimizer(optimizer, tensors, saved["optimizer"])
     unpack_rng(tensors, {"permutation": permutation_rng})
     if ctx.rank:
