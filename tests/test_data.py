@@ -92,6 +92,20 @@ def test_training_set_is_the_env_unit_windows(replay: Replay, pad_end: bool) -> 
     assert torch.equal(data.chunks, torch.cat([torch.from_numpy(chunks)] * 2))
 
 
+def test_extra_stride_keeps_the_decision_points_of_each_extra_episode(replay: Replay) -> None:
+    """--extra-stride 12: extra windows start only at frames 0, 12, 24, ... of their episode (where a collector chose a chunk)."""
+    data = training_set(DEFAULT_DATASET, 12, True, extra_data=(DEFAULT_DATASET,), extra_stride=12)
+    starts = np.concatenate([[0], replay.episode_ends[:-1]])
+    decisions = np.concatenate([np.arange(s, e, 12) for s, e in zip(starts, replay.episode_ends)])
+    states, chunks = make_windows(replay, 12, True)
+    assert len(data) - data.demo_windows == len(decisions)
+    assert torch.equal(data.states[data.demo_windows:], torch.from_numpy(states[decisions]))
+    assert torch.equal(data.chunks[data.demo_windows:], torch.from_numpy(chunks[decisions]))
+    assert torch.equal(data.states[: data.demo_windows], torch.from_numpy(states))  # the demonstrations keep every window
+    with pytest.raises(ValueError, match="extra_stride"):
+        training_set(DEFAULT_DATASET, 12, True, extra_data=(DEFAULT_DATASET,), extra_stride=0)
+
+
 @pytest.mark.parametrize("frame", ["absolute", "agent"])
 def test_statistics_are_the_demonstrations_alone_in_the_frame(replay: Replay, frame: str) -> None:
     data = training_set(DEFAULT_DATASET, 12, extra_data=(DEFAULT_DATASET,))
