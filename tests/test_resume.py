@@ -156,3 +156,19 @@ def test_resume_refuses_a_changed_config(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--resume needs the config it was started with; changed: lr 0.0003 -> 0.001" in err
     assert _snapshot(tmp_path) == before
+
+
+@pytest.mark.slow
+def test_a_weight_averaged_run_resumes_to_the_same_average(tmp_path):
+    """--ema-decay: the average is resumable state too, so a stopped and resumed run ships the uninterrupted run's average."""
+    average = ("--ema-decay", "0.99")
+    assert main(_args(tmp_path / "straight", 600, *average)) == 0
+    run_dir = tmp_path / "run"
+    proc = _start(_args(tmp_path, 600, *average))
+    _wait_for(proc, lambda: (run_dir / "log.jsonl").is_file() and _train_steps(run_dir))
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert json.loads((run_dir / "state.json").read_text())["step"] < 600
+    assert main(_args(tmp_path, 600, "--resume", *average)) == 0
+    _assert_same(_weights(run_dir), _weights(tmp_path / "straight" / "run"))
