@@ -33,6 +33,7 @@ if importlib.util.find_spec("pusht") is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pusht.gif import FPS, annotated_frame, write_gif as _write_gif
 from pusht.rollout import RolloutSummary, card_id, check_output_path, episode_seeds, run_episodes, write_episode_records
+from pusht.spec import HELD_OUT_SEED
 
 EXIT_ERROR = 2
 _DETAIL_CHARS = 300
@@ -130,7 +131,7 @@ def rollout(
     policy: str = "flow",
     episodes: int = 100,
     num_envs: int = 100,
-    seed: int = 200000,
+    seed: int = HELD_OUT_SEED,
     max_steps: int = 300,
     action_horizon: int | None = None,
     gif: str | Path | None = None,
@@ -229,7 +230,7 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--policy", default="flow", help="policy name served by the service")
     parser.add_argument("--episodes", type=int, default=100, help="number of episodes, env seeds SEED..SEED+N-1")
     parser.add_argument("--num-envs", type=int, default=100, help="envs stepped in lockstep, one request per decision for all; scores do not depend on it")
-    parser.add_argument("--seed", type=int, default=200000, help="first episode seed (200000..200099 are the held-out seeds)")
+    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED, help=f"first episode seed ({HELD_OUT_SEED}.. are the held-out seeds)")
     parser.add_argument("--max-steps", type=int, default=300, help="episode step limit")
     parser.add_argument("--action-horizon", type=int, default=None,
                         help="actions of each chunk executed open loop (default: the whole chunk, the policy's horizon in GET /policies)")

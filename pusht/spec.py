@@ -9,7 +9,7 @@ from __future__ import annotations
 
 __all__ = [
     "ACTION_DIM", "ACTION_HIGH", "ACTION_LOW", "DEFAULT_HORIZON", "DEFAULT_NUM_STEPS", "FINETUNE_EVAL_SEED",
-    "HELD_OUT_SEED", "MIN_STD", "POLICY_KINDS", "RESERVED_SEEDS", "STATE_DIM", "SUCCESS_COVERAGE",
+    "HELD_OUT_RANGES", "HELD_OUT_SEED", "MIN_STD", "POLICY_KINDS", "RESERVED_SEEDS", "STATE_DIM", "SUCCESS_COVERAGE",
     "TRAIN_EVAL_SEED", "TUNING_SEED", "UNUSED_SEED",
 ]
 
@@ -42,5 +42,7 @@ FINETUNE_EVAL_SEED = 400_000
 """fine-tuning's periodic evaluation (400000..)"""
 UNUSED_SEED = 600_000
 """1,000 further held-out episodes (600000..600999)"""
+HELD_OUT_RANGES = (range(HELD_OUT_SEED, HELD_OUT_SEED + 500), range(UNUSED_SEED, UNUSED_SEED + 1000))
+"""every held-out episode seed (the 100 and 500 episodes from 200000, the 1,000 from 600000): never trained or collected on"""
 RESERVED_SEEDS = range(100_000, 1_000_000)
 """every evaluation range above: collection and training episodes draw seeds outside it"""

@@ -28,13 +28,11 @@ import numpy as np
 from acting import Policy, rollout_act
 from pusht.geometry import coverage
 from pusht.rollout import Trajectory, default_env_factory, run_episodes
-from pusht.spec import HELD_OUT_SEED, SUCCESS_COVERAGE
+from pusht.spec import HELD_OUT_RANGES, SUCCESS_COVERAGE
 from training.cli import HelpFormatter
 from training.data import Replay, save_replay
 from training.evaluate import evaluate_policy, load_model, report
 
-HELDOUT_SEEDS = range(HELD_OUT_SEED, HELD_OUT_SEED + 100)
-"""Seeds of the shipped models' held-out evaluation (training.ship): never collected from."""
 RETRY_SEED_STRIDE = 10**9
 """Retries of a collection from --seed S play episode seeds from (S + 1) * 10**9 on (their noise only)."""
 
@@ -44,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m training.collect", description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
     parser.add_argument("--model", required=True, help="an ONNX file or a checkpoint stem (models/flow)")
     parser.add_argument("--episodes", type=int, default=1000, help="episodes to play (seeds seed..seed+episodes-1)")
-    parser.add_argument("--seed", type=int, default=300000, help=f"first episode seed; must keep the range clear of the held-out seeds {HELDOUT_SEEDS.start}..{HELDOUT_SEEDS.stop - 1}")
+    parser.add_argument("--seed", type=int, default=300000, help="first episode seed; the range must keep clear of the held-out seeds " + _ranges())
     parser.add_argument("--num-envs", type=int, default=250, help="environments run in lockstep")
     parser.add_argument("--noise-scale", type=float, default=1.0, help="flow: multiply the start noise by this (on top of the model's own noise_scale)")
     parser.add_argument("--retries", type=int, default=0, help="replay each near-miss this many times from its first state within --retry-coverage")
@@ -84,11 +82,8 @@ def collect(
         raise ValueError(f"retries must be >= 0, got {retries}")
     if not 0 < retry_coverage < SUCCESS_COVERAGE:
         raise ValueError(f"retry_coverage must be in (0, {SUCCESS_COVERAGE}), got {retry_coverage}")
-    if seed < HELDOUT_SEEDS.stop and seed + episodes > HELDOUT_SEEDS.start:
-        raise ValueError(
-            f"seeds {seed}..{seed + episodes - 1} overlap the held-out seeds "
-            f"{HELDOUT_SEEDS.start}..{HELDOUT_SEEDS.stop - 1}; choose another --seed"
-        )
+    if any(seed < held.stop and seed + episodes > held.start for held in HELD_OUT_RANGES):
+        raise ValueError(f"seeds {seed}..{seed + episodes - 1} overlap the held-out seeds {_ranges()}; choose another --seed")
     policy = load_model(model)
     summary = evaluate_policy(
         policy, episodes=episodes, seed=seed, num_envs=num_envs, progress=progress, record_trajectories=True,
@@ -193,6 +188,11 @@ class _RestoringEnv:
 
     def close(self) -> None:
         self.env.close()
+
+
+def _ranges() -> str:
+    """The held-out seed ranges, for messages."""
+    return " and ".join(f"{r.start}..{r.stop - 1}" for r in HELD_OUT_RANGES)
 
 
 if __name__ == "__main__":
