@@ -1,0 +1,103 @@
+"""The one acting interface on the shipped models: no torch unless asked, per-row seeds, batch independence, step counts, card rules."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import acting
+from acting.card import CardError
+from pusht.seeding import row_noise
+
+REPO = Path(__file__).resolve().parent.parent
+MODELS = REPO / "models"
+STATES = np.random.default_rng(7).uniform(0, 512, (9, 5)).astype(np.float32)
+
+
+def test_importing_acting_and_running_onnx_imports_no_torch():
+    code = ("import sys, numpy as np, acting; p = acting.load_policy('models/flow.onnx'); "
+            "p.act(np.full((2, 5), 256, np.float32), seeds=[1, 2]); print('torch' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize("model", ["flow.onnx", "flow", "mse.onnx", "mse"])
+def test_a_row_depends_on_its_own_state_and_seed_only(model):
+    policy = acting.load_policy(MODELS / model)
+    seeds = [11, 12, 13, 14, 15, 16, 17, 18, 19]
+    together = policy.act(STATES, seeds=seeds)
+    assert together.shape == (9, policy.horizon, 2) and together.dtype == np.float32
+    assert np.all((together >= 0) & (together <= 512))
+    for i in (0, 4, 8):
+        alone = policy.act(STATES[i : i + 1], seeds=seeds[i : i + 1])
+        np.testing.assert_array_equal(alone[0], together[i])  # bit for bit, whatever the batch
+
+
+def test_seeds_are_row_noise_and_noise_scale_multiplies_it():
+    policy = acting.load_policy(MODELS / "flow.onnx")
+    seeds = list(range(100, 109))
+    np.testing.assert_array_equal(policy.act(STATES, seeds=seeds), policy.act(STATES, noise=row_noise(seeds)))
+    np.testing.assert_array_equal(policy.act(STATES, seeds=seeds, noise_scale=0.5),
+                                  policy.act(STATES, noise=row_noise(seeds) * np.float32(0.5)))
+    with pytest.raises(ValueError, match="one seed per state"):
+        policy.act(STATES, seeds=[1, 2])
+    with pytest.raises(ValueError, match="noise must have shape"):
+        policy.act(STATES, noise=np.zeros((9, 16, 2), np.float32))
+    with pytest.raises(ValueError, match="states must have shape"):
+        policy.act(np.zeros((3, 4), np.float32))
+
+
+def test_step_counts_each_backend_can_run():
+    onnx, torch_policy, mse = (acting.load_policy(MODELS / m) for m in ("flow.onnx", "flow", "mse.onnx"))
+    assert onnx.default_num_steps == torch_policy.default_num_steps == 10 and mse.default_num_steps is None
+    assert onnx.check_num_steps(10) is None and "unrolls 10 flow steps" in onnx.check_num_steps(4)
+    assert torch_policy.check_num_steps(4) is None
+    assert "applies to flow policies" in mse.check_num_steps(4)
+    assert onnx.network_evaluations() == 10 and torch_policy.network_evaluations(4) == 4 and mse.network_evaluations() == 1
+    with pytest.raises(ValueError, match="unrolls 10 flow steps"):
+        acting.load_policy(MODELS / "flow.onnx", num_steps=4)
+    fewer = acting.load_policy(MODELS / "flow", num_steps=4)
+    np.testing.assert_array_equal(fewer.act(STATES, seeds=range(9)), torch_policy.act(STATES, seeds=range(9), num_steps=4))
+
+
+def _copy(tmp_path: Path, name: str = "flow") -> Path:
+    for suffix in (".json", ".onnx"):
+        shutil.copyfile(MODELS / f"{name}{suffix}", tmp_path / f"{name}{suffix}")
+    return tmp_path / f"{name}.json"
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda c: c.pop("normalization"), "card is missing fields ['normalization']"),
+    (lambda c: c.update(kind="gan"), "unknown policy kind 'gan'"),
+    (lambda c: c["architecture"].update(horizon=0), "architecture.horizon must be an integer in 1..1024"),
+    (lambda c: c["onnx"].update(num_steps=1000), "onnx.num_steps must be an integer in 1..100"),
+    (lambda c: c["normalization"].update(state_std=[1.0, 1.0]), "normalization.state_std must be a list of 5 numbers"),
+    (lambda c: c.update(onnx="flow.onnx"), "onnx must be null or an object"),
+])
+def test_one_reader_names_the_card_and_the_problem(tmp_path, edit, message):
+    card_path = _copy(tmp_path)
+    card = json.loads(card_path.read_text())
+    edit(card)
+    card_path.write_text(json.dumps(card))
+    with pytest.raises(CardError) as error:
+        acting.read_card(card_path)
+    assert str(error.value).startswith(f"{card_path}: ") and message in str(error.value)
+
+
+def test_a_graph_that_does_not_match_its_card_is_refused(tmp_path):
+    _copy(tmp_path)
+    shutil.copyfile(MODELS / "mse.onnx", tmp_path / "flow.onnx")  # a flow card beside an mse graph
+    with pytest.raises(CardError, match="flow.onnx: has inputs \\['state'\\], a flow policy takes"):
+        acting.load_policy(tmp_path / "flow.onnx")
+    (tmp_path / "flow.onnx").write_bytes(b"not onnx")
+    with pytest.raises(CardError, match="not a loadable ONNX model"):
+        acting.load_policy(tmp_path / "flow.onnx")
+    with pytest.raises(CardError, match="checkpoint card not found"):
+        acting.load_policy(tmp_path / "nothing.onnx")
