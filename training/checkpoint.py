@@ -19,7 +19,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from acting.card import CardError, read_card, validate_card
+from acting.card import CardError, card_stem, read_card, validate_card
 from pusht.spec import DEFAULT_NUM_STEPS, POLICY_KINDS
 from training.networks import count_parameters
 from training.policies import ActingPolicy, build_policy
@@ -164,10 +164,8 @@ def _rewrite_card(stem: Path, card: dict[str, Any]) -> dict[str, Any]:
 
 
 def checkpoint_stem(stem: str | Path) -> Path:
-    """DIR/NAME from DIR/NAME, DIR/NAME.json or DIR/NAME.safetensors (other suffixes are part of the name)."""
-    path = Path(stem)
-    if path.suffix in (CARD_SUFFIX, WEIGHTS_SUFFIX, ".onnx"):
-        path = path.with_suffix("")
+    """`acting.card.card_stem` (DIR/NAME from DIR/NAME, .json, .onnx or .safetensors), refusing a path with no NAME."""
+    path = card_stem(stem)
     if not path.name:
         raise CheckpointError(f"{stem!s}: not a checkpoint stem (expected DIR/NAME)")
     return path
