@@ -15,7 +15,8 @@ import acting
 from acting.card import Card
 from pusht.rollout import decision_seed, row_noise
 from training.checkpoint import load_acting_policy, save_checkpoint
-from training.data import Normalizer, load_replay
+from training.data import load_replay
+from training.normalization import Normalizer
 from training.evaluate import evaluate_policy, main
 from training.policies import build_policy
 

@@ -14,7 +14,8 @@ import pytest
 import torch
 
 from training.checkpoint import CheckpointError, load_acting_policy, load_card, save_checkpoint
-from training.data import Normalizer, load_replay
+from training.data import load_replay
+from training.normalization import Normalizer
 from training.export import export_onnx, main
 from training.policies import build_policy
 
