@@ -75,6 +75,8 @@ def _changes(card: dict) -> str:
         parts.append(f"state noise {noise[0]}->{noise[1]} {noise[2]}")
     if config.get("pad_episode_end"):
         parts.append("end-padded windows")
+    if config.get("action_speed", 1.0) != 1.0:
+        parts.append(f"chunks at {config['action_speed']:g}x the demonstrations' pace")
     if config.get("lr", 3e-4) != 3e-4:
         parts.append(f"lr {config['lr']:g}")
     if config.get("init"):

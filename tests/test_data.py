@@ -69,6 +69,24 @@ def test_padded_windows_start_at_every_frame_and_repeat_the_last_action() -> Non
 RECORDED_RUNS = sorted((REPO / "records").glob("*/last.json"))
 
 
+def test_faster_windows_interpolate_the_demonstrated_path_and_stay_in_their_episode() -> None:
+    actions = np.arange(40, dtype=np.float32).reshape(20, 2)  # action at frame f: (2f, 2f + 1)
+    replay = Replay(np.arange(100, dtype=np.float32).reshape(20, 5), actions, np.array([6, 20]))
+    states, chunks = make_windows(replay, horizon=4, pad_end=True, speed=1.5)
+    np.testing.assert_array_equal(states, replay.states)
+    frames = lambda w: (chunks[w][:, 0] / 2).tolist()  # noqa: E731  (the frame each action was read at)
+    assert frames(6) == [6.0, 7.5, 9.0, 10.5]
+    assert frames(2) == [2.0, 3.5, 5.0, 5.0]  # padded with episode 0's last action (frame 5), never episode 1's
+    assert frames(17) == [17.0, 18.5, 19.0, 19.0]
+    # without padding a window starts only where its whole span (1 + ceil(1.5 * 3) = 6 frames) fits in its episode
+    states, chunks = make_windows(replay, horizon=4, speed=1.5)
+    np.testing.assert_array_equal(states[:, 0] / 5, [0, 6, 7, 8, 9, 10, 11, 12, 13, 14])
+    assert (chunks[-1][:, 0] / 2).tolist() == [14.0, 15.5, 17.0, 18.5]
+    np.testing.assert_array_equal(make_windows(replay, 4, True, speed=1.0)[1], make_windows(replay, 4, True)[1])
+    with pytest.raises(ValueError, match="speed"):
+        make_windows(replay, 4, True, speed=0.0)
+
+
 @pytest.mark.parametrize("card_path", RECORDED_RUNS, ids=[p.parent.name for p in RECORDED_RUNS])
 def test_training_set_reproduces_every_recorded_run_s_statistics(card_path: Path) -> None:
     """A policy fitted on the one-call dataset must normalize exactly as the runs behind the recorded scores did."""

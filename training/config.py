@@ -46,6 +46,7 @@ class TrainConfig:
     arch: str = _f("{}", "extra policy constructor kwargs as JSON, e.g. '{\"hidden_dims\": [256, 256], \"action_frame\": \"agent\"}' (keys: training.architecture)")
     horizon: int = _f(DEFAULT_HORIZON, "actions per chunk")
     pad_episode_end: bool = _f(False, "also train on windows starting in an episode's last horizon-1 frames, their chunks padded with its last action")
+    action_speed: float = _f(1.0, "chunks play the demonstrations this many times as fast (action k = the demonstrated action at frame t + speed k, interpolated): the demonstrators are slow, and a policy that only copies their pace often runs out of the 300 steps")
     # 0.05 is the recipe; policy-quality.md measured 0.15 and 0.3 hurting, 0.02 and 0.05 within noise.
     state_noise_start: float = _f(0.05, "std of Gaussian noise on normalized training states at step 0")
     state_noise_end: float = _f(0.0, "std of that noise at the last step")
@@ -79,6 +80,7 @@ class TrainConfig:
             (self.weight_decay >= 0, f"weight_decay must be >= 0, got {self.weight_decay}"),
             (0 <= self.dropout < 1, f"dropout must be in [0, 1), got {self.dropout}"),
             (self.horizon >= 1, f"horizon must be >= 1, got {self.horizon}"),
+            (0.25 <= self.action_speed <= 4, f"action_speed must be in [0.25, 4], got {self.action_speed}"),
             (self.state_noise_start >= 0 and self.state_noise_end >= 0, "state noise stds must be >= 0"),
             (self.eval_every >= -1, f"eval_every must be >= -1, got {self.eval_every}"),
             (self.eval_episodes >= 1, f"eval_episodes must be >= 1, got {self.eval_episodes}"),
@@ -109,8 +111,8 @@ class TrainConfig:
         return value
 
     def to_dict(self) -> dict[str, Any]:
-        """A JSON-ready dict of every field; the weights only when not 1, so configs saved before they existed match (--resume)."""
-        return {k: v for k, v in asdict(self).items() if not (k in ("human_weight", "policy_step_weight") and v == 1.0)}
+        """A JSON-ready dict of every field; the weights and the speed only when not 1, so configs saved before they existed match (--resume)."""
+        return {k: v for k, v in asdict(self).items() if not (k in ("human_weight", "policy_step_weight", "action_speed") and v == 1.0)}
 
 
 def build_parser() -> argparse.ArgumentParser:
