@@ -17,6 +17,7 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -87,7 +88,7 @@ def run_episodes(
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
     if env_factory is None:
-        env_factory = default_env_factory
+        env_factory = partial(default_env_factory, int(max_steps))  # the env's own time limit must not cut max_steps short
     report = _progress_callback(progress)
 
     start = time.perf_counter()
@@ -115,9 +116,9 @@ def run_episodes(
     )
 
 
-def default_env_factory():
-    """A fresh `pusht.PushTEnv` with state observations and rgb_array rendering."""
-    return _push_t_env_class()(obs_type="state", render_mode="rgb_array")
+def default_env_factory(max_episode_steps: int = 300):
+    """A fresh `pusht.PushTEnv` with state observations and rgb_array rendering, truncating after `max_episode_steps`."""
+    return _push_t_env_class()(obs_type="state", render_mode="rgb_array", max_episode_steps=max_episode_steps)
 
 
 def _push_t_env_class():

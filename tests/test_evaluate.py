@@ -97,6 +97,19 @@ def test_action_horizon_defaults_to_the_cards_chunk_and_may_not_exceed_it():
         evaluate_policy(policy, episodes=1, seed=0, action_horizon=17)
 
 
+class StillPolicy(RecordingPolicy):
+    """Holds the agent where it is: never moves the block, so never succeeds."""
+
+    def _run(self, states, prev_states, noise, num_steps):
+        return np.repeat(states[:, None, :2], self.horizon, axis=1)
+
+
+@pytest.mark.parametrize("env", ["pusht", "gym-pusht"])
+def test_max_steps_beyond_the_envs_own_300_steps_is_played_in_both_envs(env):
+    summary = evaluate_policy(StillPolicy(), episodes=2, seed=0, num_envs=2, env=env, max_steps=336)
+    assert [e.length for e in summary.episodes] == [336, 336] and summary.decisions == 28
+
+
 def test_torch_checkpoint_is_deterministic_per_seed(checkpoint):
     stem, kind = checkpoint
     policy = acting.load_policy(stem)

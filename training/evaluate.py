@@ -126,7 +126,7 @@ def evaluate_policy(
         num_envs=num_envs or len(seeds),
         max_steps=max_steps,
         action_horizon=action_horizon,
-        env_factory=env_factory(env),
+        env_factory=env_factory(env, max_steps),
         progress=progress,
         record_frames=annotated_frame if record_frames else False,
         record_trajectories=record_trajectories,
@@ -155,12 +155,14 @@ def report(summary: RolloutSummary, model: str, kind: str, env: str) -> dict[str
     return {"model": str(model), "kind": kind, "env": env, **summary.scores()}
 
 
-def env_factory(env: str) -> Callable[[], Any]:
-    """A factory of state-observation Push-T envs: ours (`pusht`) or the reference `gym-pusht`."""
+def env_factory(env: str, max_steps: int = 300) -> Callable[[], Any]:
+    """A factory of state-observation Push-T envs: ours (`pusht`, truncating after `max_steps`) or the reference `gym-pusht`."""
     if env == "pusht":
+        from functools import partial
+
         from pusht.rollout import default_env_factory
 
-        return default_env_factory
+        return partial(default_env_factory, max_steps)
     if env == "gym-pusht":
         import importlib
 
@@ -168,7 +170,7 @@ def env_factory(env: str) -> Callable[[], Any]:
 
         importlib.import_module("gym_pusht")  # registers gym_pusht/PushT-v0
 
-        # unwrapped: the runner enforces the 300-step limit itself
+        # unwrapped: the runner enforces max_steps itself
         return lambda: gymnasium.make("gym_pusht/PushT-v0", obs_type="state", render_mode="rgb_array").unwrapped
     raise ValueError(f"unknown env {env!r}; expected one of {ENVS}")
 
