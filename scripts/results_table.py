@@ -76,7 +76,9 @@ def _changes(card: dict) -> str:
     if config.get("pad_episode_end"):
         parts.append("end-padded windows")
     if config.get("action_speed", 1.0) != 1.0:
-        parts.append(f"chunks at {config['action_speed']:g}x the demonstrations' pace")
+        near = config.get("action_speed_near") or config["action_speed"]
+        where = f" ({near:g}x within {config['speed_radius']:g} of the goal)" if near != config["action_speed"] and config.get("speed_radius") else ""
+        parts.append(f"chunks at {config['action_speed']:g}x the demonstrations' pace{where}")
     if config.get("lr", 3e-4) != 3e-4:
         parts.append(f"lr {config['lr']:g}")
     if config.get("init"):

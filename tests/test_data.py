@@ -13,7 +13,9 @@ import torch
 import zarr
 
 from training.data import DEFAULT_DATASET, DatasetError, Replay, load_replay, make_windows, training_set, window_starts
+from pusht.geometry import GOAL_POSE
 from training.normalization import Normalizer
+from training.pace import Pace, goal_distance
 from training.policies import build_policy
 
 REPO = Path(__file__).resolve().parent.parent
@@ -72,19 +74,32 @@ RECORDED_RUNS = sorted((REPO / "records").glob("*/last.json"))
 def test_faster_windows_interpolate_the_demonstrated_path_and_stay_in_their_episode() -> None:
     actions = np.arange(40, dtype=np.float32).reshape(20, 2)  # action at frame f: (2f, 2f + 1)
     replay = Replay(np.arange(100, dtype=np.float32).reshape(20, 5), actions, np.array([6, 20]))
-    states, chunks = make_windows(replay, horizon=4, pad_end=True, speed=1.5)
+    states, chunks = make_windows(replay, horizon=4, pad_end=True, pace=1.5)
     np.testing.assert_array_equal(states, replay.states)
     frames = lambda w: (chunks[w][:, 0] / 2).tolist()  # noqa: E731  (the frame each action was read at)
     assert frames(6) == [6.0, 7.5, 9.0, 10.5]
     assert frames(2) == [2.0, 3.5, 5.0, 5.0]  # padded with episode 0's last action (frame 5), never episode 1's
     assert frames(17) == [17.0, 18.5, 19.0, 19.0]
     # without padding a window starts only where its whole span (1 + ceil(1.5 * 3) = 6 frames) fits in its episode
-    states, chunks = make_windows(replay, horizon=4, speed=1.5)
+    states, chunks = make_windows(replay, horizon=4, pace=1.5)
     np.testing.assert_array_equal(states[:, 0] / 5, [0, 6, 7, 8, 9, 10, 11, 12, 13, 14])
     assert (chunks[-1][:, 0] / 2).tolist() == [14.0, 15.5, 17.0, 18.5]
-    np.testing.assert_array_equal(make_windows(replay, 4, True, speed=1.0)[1], make_windows(replay, 4, True)[1])
-    with pytest.raises(ValueError, match="speed"):
-        make_windows(replay, 4, True, speed=0.0)
+    np.testing.assert_array_equal(make_windows(replay, 4, True, pace=1.0)[1], make_windows(replay, 4, True)[1])
+    with pytest.raises(ValueError, match="pace far must be in"):
+        make_windows(replay, 4, True, pace=0.0)
+
+
+def test_a_pace_per_window_hurries_only_far_from_the_goal(replay: Replay) -> None:
+    pace = Pace(far=2.0, near=1.0, radius=2.0)
+    states, chunks = make_windows(replay, 12, True, pace)
+    far = goal_distance(states) >= 2.0
+    assert 0.3 < far.mean() < 0.7  # both kinds of window are common in the demonstrations
+    np.testing.assert_array_equal(chunks[far], make_windows(replay, 12, True, 2.0)[1][far])
+    np.testing.assert_array_equal(chunks[~far], make_windows(replay, 12, True)[1][~far])
+    assert goal_distance(np.array([[0, 0, *GOAL_POSE]]))[0] == 0
+    assert goal_distance(np.array([[0, 0, GOAL_POSE[0] + 40, GOAL_POSE[1], GOAL_POSE[2] + 2 * np.pi - 0.3]]))[0] == pytest.approx(1.5)
+    with pytest.raises(ValueError, match="pace near must be in"):
+        Pace(far=2.0, near=5.0, radius=1.0)
 
 
 @pytest.mark.parametrize("card_path", RECORDED_RUNS, ids=[p.parent.name for p in RECORDED_RUNS])

@@ -20,6 +20,7 @@ import zarr
 
 from pusht.spec import ACTION_DIM, DEFAULT_HORIZON, STATE_DIM
 from training.normalization import Normalizer
+from training.pace import Pace
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATASET = REPO_ROOT / "data" / "pusht_lowdim.zarr"
@@ -97,38 +98,42 @@ def save_replay(path: str | Path, replay: Replay, attrs: dict[str, Any] | None =
 
 
 def make_windows(replay: Replay, horizon: int = DEFAULT_HORIZON, pad_end: bool = False,
-                 speed: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+                 pace: Pace | float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """States [W, 5] and action chunks [W, horizon, 2]: the state at t and actions t..t+horizon-1 of one episode.
 
     With `pad_end`, every frame starts a window, and chunks that would run past their episode's end
     repeat its last action (as Diffusion Policy's sampler pads), so the final frames are learned too.
-    With `speed` s, action k of a chunk is the demonstration's at frame t + s k (linearly interpolated):
-    the chunk plays the demonstrator's path s times as fast.
+    At pace s (a number, or a `Pace` that sets it per window from its state), action k of a chunk is
+    the demonstration's at frame t + s k, linearly interpolated: the demonstrated path s times as fast.
     """
-    window_span(horizon, speed)  # validates the speed
-    starts = window_frames(replay, horizon, pad_end, speed)
-    positions = starts[:, None] + speed * np.arange(horizon)[None, :]
+    pace = pace if isinstance(pace, Pace) else Pace(float(pace))
+    starts = window_frames(replay, horizon, pad_end, pace.fastest)
+    states = replay.states[starts].copy()
+    if pace.is_uniform:  # integer frames: the demonstration's actions exactly
+        positions = starts[:, None] + np.arange(horizon)[None, :]
+    else:
+        positions = starts[:, None] + pace.speeds(states)[:, None] * np.arange(horizon)[None, :]
     if pad_end:
         last = np.repeat(replay.episode_ends - 1, np.diff(np.concatenate([[0], replay.episode_ends])))[starts]
         positions = np.minimum(positions, last[:, None])
-    if speed == 1.0:  # integer frames: the demonstration's actions exactly
-        return replay.states[starts].copy(), replay.actions[positions.astype(np.int64)]
+    if pace.is_uniform:
+        return states, replay.actions[positions]
     below = np.floor(positions).astype(np.int64)
     above = np.minimum(below + 1, np.ceil(positions).astype(np.int64))  # never past the clamp (an episode's last frame)
     weight = (positions - below)[..., None]
     chunks = (1 - weight) * replay.actions[below] + weight * replay.actions[above]
-    return replay.states[starts].copy(), chunks.astype(np.float32)
+    return states, chunks.astype(np.float32)
 
 
 def window_frames(replay: Replay, horizon: int = DEFAULT_HORIZON, pad_end: bool = False, speed: float = 1.0) -> np.ndarray:
-    """The frame each of `make_windows`' windows starts at (every frame with `pad_end`)."""
+    """The frame each of `make_windows`' windows starts at (every frame with `pad_end`; else where a chunk at pace `speed` fits)."""
     if pad_end:
         return np.arange(len(replay.states), dtype=np.int64)
     return window_starts(replay.episode_ends, window_span(horizon, speed))
 
 
 def window_span(horizon: int, speed: float = 1.0) -> int:
-    """Demonstration frames a chunk of `horizon` actions at `speed` covers."""
+    """Demonstration frames a chunk of `horizon` actions at pace `speed` covers."""
     if not speed > 0:
         raise ValueError(f"speed must be > 0, got {speed}")
     return int(np.ceil(speed * (horizon - 1) - 1e-9)) + 1
@@ -172,22 +177,23 @@ class TrainingSet:
 
 
 def training_set(data: str | Path, horizon: int = DEFAULT_HORIZON, pad_end: bool = False, extra_data: tuple[str | Path, ...] = (),
-                 human_weight: float = 1.0, policy_step_weight: float = 1.0, extra_stride: int = 1, speed: float = 1.0) -> TrainingSet:
+                 human_weight: float = 1.0, policy_step_weight: float = 1.0, extra_stride: int = 1, pace: Pace | float = 1.0) -> TrainingSet:
     """The demonstrations' windows plus those of `extra_data`, in env units.
 
     Extra windows whose first action a human gave (data/human) weigh `human_weight`, the others of such stores `policy_step_weight`.
     With `extra_stride` k, extra windows start only every k-th frame of an episode (a policy's decision points when k is its chunk length).
-    `speed`: the chunks play the demonstrations that many times as fast (`make_windows`)."""
+    `pace`: how fast the chunks play the demonstrations (`make_windows`, training.pace)."""
     if extra_stride < 1:
         raise ValueError(f"extra_stride must be >= 1, got {extra_stride}")
+    pace = pace if isinstance(pace, Pace) else Pace(float(pace))
     replay = load_replay(data)
-    states, chunks = make_windows(replay, horizon, pad_end, speed)
+    states, chunks = make_windows(replay, horizon, pad_end, pace)
     demo_windows = len(states)
     weights = [np.ones(demo_windows)]
     for extra in extra_data:
         extra_replay = load_replay(extra)
-        extra_states, extra_chunks = make_windows(extra_replay, horizon, pad_end, speed)
-        frames = window_frames(extra_replay, horizon, pad_end, speed)
+        extra_states, extra_chunks = make_windows(extra_replay, horizon, pad_end, pace)
+        frames = window_frames(extra_replay, horizon, pad_end, pace.fastest)
         keep = _frame_in_episode(frames, extra_replay.episode_ends) % extra_stride == 0
         extra_states, extra_chunks, frames = extra_states[keep], extra_chunks[keep], frames[keep]
         states, chunks = np.concatenate([states, extra_states]), np.concatenate([chunks, extra_chunks])

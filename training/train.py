@@ -208,7 +208,7 @@ def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
 
     extra = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
     data = training_set(cfg.data, cfg.horizon, cfg.pad_episode_end, extra, human_weight=cfg.human_weight,
-                        policy_step_weight=cfg.policy_step_weight, extra_stride=cfg.extra_stride, speed=cfg.action_speed)
+                        policy_step_weight=cfg.policy_step_weight, extra_stride=cfg.extra_stride, pace=cfg.pace())
     if len(data) < cfg.batch_size:
         raise ValueError(f"{cfg.data} has {len(data)} windows, fewer than batch_size {cfg.batch_size}")
     if cfg.init:
