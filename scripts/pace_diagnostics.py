@@ -1,0 +1,84 @@
+"""Diagnostics of the policies' pace, outside the served contract: resampled chunks, and two flows gated by goal distance.
+
+    python scripts/pace_diagnostics.py resample --model models/flow.onnx --speed 1.5
+    python scripts/pace_diagnostics.py gate --far runs/flow-speed2.0-padend-150k/last.onnx --far-noise-scale 0.3 \
+        --near models/flow.onnx --radius 2.0
+
+`resample` plays each chunk `speed` times as fast (linear interpolation between its actions) and so
+executes only floor(11 / speed) + 1 actions of it before asking again; `gate` takes, per row, the far
+flow's chunk when the block is at least `radius` goal units from the goal (training.pace) and the near
+flow's otherwise, all 12 actions executed. Neither is a shippable policy (the first breaks the
+12-actions-open-loop rule, the second runs two networks); they measure what pace is worth. Prints one
+JSON line with the scores, as training.evaluate does. Tuning seeds only (default 300000).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import numpy as np
+
+from acting import load_policy, rollout_act
+from pusht.rollout import run_episodes
+from training.cli import HelpFormatter
+from training.pace import goal_distance
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point."""
+    parser = argparse.ArgumentParser(prog="python scripts/pace_diagnostics.py", description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
+    sub = parser.add_subparsers(dest="mode", required=True)
+    resample = sub.add_parser("resample", help="one flow, each chunk played SPEED times as fast", formatter_class=HelpFormatter)
+    resample.add_argument("--model", required=True, help="ONNX file or checkpoint stem")
+    resample.add_argument("--speed", type=float, required=True, help="pace multiplier (executes floor(11 / speed) + 1 actions per chunk)")
+    resample.add_argument("--noise-scale", type=float, default=1.0, help="start-noise multiplier on top of the card's")
+    gate = sub.add_parser("gate", help="two flows, chosen per row by the block's goal distance", formatter_class=HelpFormatter)
+    gate.add_argument("--far", required=True, help="the flow acting at least RADIUS goal units from the goal")
+    gate.add_argument("--near", required=True, help="the flow acting closer")
+    gate.add_argument("--radius", type=float, default=2.0, help="goal distance (40 px + 0.6 rad per unit) that separates them")
+    gate.add_argument("--far-noise-scale", type=float, default=1.0, help="start-noise multiplier of the far flow")
+    gate.add_argument("--near-noise-scale", type=float, default=1.0, help="start-noise multiplier of the near flow")
+    for p in (resample, gate):
+        p.add_argument("--episodes", type=int, default=1000, help="episodes (seeds seed..seed+episodes-1)")
+        p.add_argument("--seed", type=int, default=300000, help="first episode seed (use tuning seeds, never held-out ones)")
+    args = parser.parse_args(argv)
+    act, action_horizon = resampled(args) if args.mode == "resample" else gated(args)
+    summary = run_episodes(act, list(range(args.seed, args.seed + args.episodes)), num_envs=100, action_horizon=action_horizon)
+    print(json.dumps({"mode": args.mode, **{k: v for k, v in vars(args).items() if k != "mode"}, **summary.scores()}))
+    return 0
+
+
+def resampled(args: argparse.Namespace):
+    """The act function playing chunks `args.speed` times as fast, and how many actions of each it executes."""
+    policy = load_policy(args.model)
+    base = rollout_act(policy, args.noise_scale)
+    horizon = policy.card.horizon
+    executed = int(np.floor((horizon - 1) / args.speed + 1e-9)) + 1
+    positions = args.speed * np.arange(executed)
+    below = np.floor(positions).astype(np.int64)
+    above = np.minimum(below + 1, horizon - 1)
+    weight = (positions - below)[None, :, None]
+
+    def act(states: np.ndarray, seeds: list[int]) -> np.ndarray:
+        chunks = base(states, seeds)
+        return (1 - weight) * chunks[:, below] + weight * chunks[:, above]
+
+    return act, executed
+
+
+def gated(args: argparse.Namespace):
+    """The act function taking the far flow's chunk away from the goal and the near flow's close to it (whole chunks)."""
+    far = rollout_act(load_policy(args.far), args.far_noise_scale)
+    near = rollout_act(load_policy(args.near), args.near_noise_scale)
+
+    def act(states: np.ndarray, seeds: list[int]) -> np.ndarray:
+        use_far = goal_distance(states) >= args.radius
+        return np.where(use_far[:, None, None], far(states, seeds), near(states, seeds))
+
+    return act, None
+
+
+if __name__ == "__main__":
+    sys.exit(main())
