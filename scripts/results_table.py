@@ -77,7 +77,8 @@ def _changes(card: dict) -> str:
         parts.append("end-padded windows")
     if config.get("action_speed", 1.0) != 1.0:
         near = config.get("action_speed_near") or config["action_speed"]
-        where = f" ({near:g}x within {config['speed_radius']:g} of the goal)" if near != config["action_speed"] and config.get("speed_radius") else ""
+        ramp = f", rising over {config['speed_ramp']:g}" if config.get("speed_ramp") else ""
+        where = f" ({near:g}x within {config['speed_radius']:g} of the goal{ramp})" if near != config["action_speed"] else ""
         parts.append(f"chunks at {config['action_speed']:g}x the demonstrations' pace{where}")
     if config.get("lr", 3e-4) != 3e-4:
         parts.append(f"lr {config['lr']:g}")

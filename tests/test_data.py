@@ -12,6 +12,7 @@ import pytest
 import torch
 import zarr
 
+from training.config import TrainConfig
 from training.data import DEFAULT_DATASET, DatasetError, Replay, load_replay, make_windows, training_set, window_starts
 from pusht.geometry import GOAL_POSE
 from training.normalization import Normalizer
@@ -98,6 +99,9 @@ def test_a_pace_per_window_hurries_only_far_from_the_goal(replay: Replay) -> Non
     np.testing.assert_array_equal(chunks[~far], make_windows(replay, 12, True)[1][~far])
     assert goal_distance(np.array([[0, 0, *GOAL_POSE]]))[0] == 0
     assert goal_distance(np.array([[0, 0, GOAL_POSE[0] + 40, GOAL_POSE[1], GOAL_POSE[2] + 2 * np.pi - 0.3]]))[0] == pytest.approx(1.5)
+    ramped = Pace(far=2.0, near=1.0, radius=1.0, ramp=2.0).speeds(np.array([[0, 0, *GOAL_POSE], [0, 0, GOAL_POSE[0] + 80, *GOAL_POSE[1:]],
+                                                                        [0, 0, GOAL_POSE[0] + 200, *GOAL_POSE[1:]]]))
+    np.testing.assert_allclose(ramped, [1.0, 1.5, 2.0])
     with pytest.raises(ValueError, match="pace near must be in"):
         Pace(far=2.0, near=5.0, radius=1.0)
 
@@ -109,7 +113,7 @@ def test_training_set_reproduces_every_recorded_run_s_statistics(card_path: Path
     config = card["config"]
     if config.get("init"):
         pytest.skip("fine-tuned runs keep their base's normalization")
-    data = training_set(REPO / config["data"], config["horizon"], bool(config.get("pad_episode_end")))
+    data = training_set(REPO / config["data"], config["horizon"], bool(config.get("pad_episode_end")), pace=TrainConfig(**config).pace())
     policy = build_policy(card["kind"], **card["architecture"])
     policy.normalizer.set(data.statistics(policy.action_frame))
     assert policy.normalizer.to_dict() == card["normalization"]

@@ -50,6 +50,7 @@ class TrainConfig:
     action_speed: float = _f(1.0, "chunks play the demonstrations this many times as fast (action k = the demonstrated action at frame t + speed k, interpolated): the demonstrators are slow, and a policy that only copies their pace often runs out of the 300 steps (training.pace)")
     action_speed_near: float = _f(0.0, "the pace of windows whose block is within --speed-radius of the goal (0: --action-speed everywhere)")
     speed_radius: float = _f(0.0, "goal distance (40 px + 0.6 rad per unit, training.pace) inside which --action-speed-near applies")
+    speed_ramp: float = _f(0.0, "goal distances beyond --speed-radius over which the pace rises linearly to --action-speed (0: a step)")
     # 0.05 is the recipe; policy-quality.md measured 0.15 and 0.3 hurting, 0.02 and 0.05 within noise.
     state_noise_start: float = _f(0.05, "std of Gaussian noise on normalized training states at step 0")
     state_noise_end: float = _f(0.0, "std of that noise at the last step")
@@ -86,6 +87,7 @@ class TrainConfig:
             (0.25 <= self.action_speed <= 4, f"action_speed must be in [0.25, 4], got {self.action_speed}"),
             (self.action_speed_near == 0 or 0.25 <= self.action_speed_near <= 4, f"action_speed_near must be 0 or in [0.25, 4], got {self.action_speed_near}"),
             (self.speed_radius >= 0, f"speed_radius must be >= 0, got {self.speed_radius}"),
+            (self.speed_ramp >= 0, f"speed_ramp must be >= 0, got {self.speed_ramp}"),
             (self.state_noise_start >= 0 and self.state_noise_end >= 0, "state noise stds must be >= 0"),
             (self.eval_every >= -1, f"eval_every must be >= -1, got {self.eval_every}"),
             (self.eval_episodes >= 1, f"eval_episodes must be >= 1, got {self.eval_episodes}"),
@@ -117,12 +119,13 @@ class TrainConfig:
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of every field; the weights and the pace only when set, so configs saved before they existed match (--resume)."""
-        unset = {"human_weight": 1.0, "policy_step_weight": 1.0, "action_speed": 1.0, "action_speed_near": 0.0, "speed_radius": 0.0}
+        unset = {"human_weight": 1.0, "policy_step_weight": 1.0, "action_speed": 1.0, "action_speed_near": 0.0, "speed_radius": 0.0,
+                 "speed_ramp": 0.0}
         return {k: v for k, v in asdict(self).items() if not (k in unset and v == unset[k])}
 
     def pace(self) -> Pace:
         """The pace of the training chunks (training.pace)."""
-        return Pace(self.action_speed, self.action_speed_near or None, self.speed_radius)
+        return Pace(self.action_speed, self.action_speed_near or None, self.speed_radius, self.speed_ramp)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -7,7 +7,8 @@ alignment needs the demonstrators' own pace, so the pace may depend on how far t
 from the goal:
 
     distance = |block xy - goal xy| / 40 px + |block angle - goal angle| / 0.6 rad
-    pace     = far if distance >= radius else near
+    pace     = far if distance >= radius else near                       (ramp 0)
+    pace     = near + (far - near) * clip((distance - radius) / ramp, 0, 1)   (ramp > 0)
 
 It is a property of the training data only: the policy learns a pace per state, and its graph, inputs
 and outputs stay those of any flow.
@@ -35,18 +36,20 @@ def goal_distance(states: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Pace:
-    """Chunk pace `far` for windows whose block is at least `radius` goal units from the goal, `near` (default: far) closer."""
+    """Chunk pace `far` for windows whose block is at least `radius` (+ `ramp`) goal units from the goal, `near` (default: far) closer,
+    linear in between."""
 
     far: float = 1.0
     near: float | None = None
     radius: float = 0.0
+    ramp: float = 0.0
 
     def __post_init__(self) -> None:
         for name, value in (("far", self.far), ("near", self.near_pace)):
             if not 0.25 <= value <= 4:
                 raise ValueError(f"pace {name} must be in [0.25, 4], got {value}")
-        if not self.radius >= 0:
-            raise ValueError(f"pace radius must be >= 0, got {self.radius}")
+        if not (self.radius >= 0 and self.ramp >= 0):
+            raise ValueError(f"pace radius and ramp must be >= 0, got {self.radius} and {self.ramp}")
 
     @property
     def near_pace(self) -> float:
@@ -65,6 +68,9 @@ class Pace:
 
     def speeds(self, states: np.ndarray) -> np.ndarray:
         """The pace [N] of windows starting in env-unit states [N, 5]."""
-        if self.radius == 0 or self.far == self.near_pace:
+        if (self.radius == 0 and self.ramp == 0) or self.far == self.near_pace:
             return np.full(len(states), self.far)
-        return np.where(goal_distance(states) >= self.radius, self.far, self.near_pace)
+        distance = goal_distance(states)
+        if self.ramp == 0:
+            return np.where(distance >= self.radius, self.far, self.near_pace)
+        return self.near_pace + (self.far - self.near_pace) * np.clip((distance - self.radius) / self.ramp, 0.0, 1.0)
