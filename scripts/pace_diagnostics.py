@@ -3,13 +3,16 @@
     python scripts/pace_diagnostics.py resample --model models/flow.onnx --speed 1.5
     python scripts/pace_diagnostics.py gate --far runs/flow-speed2.0-padend-150k/last.onnx --far-noise-scale 0.3 \
         --near models/flow.onnx --radius 2.0
+    python scripts/pace_diagnostics.py phases --model models/flow.onnx --max-steps 900
 
 `resample` plays each chunk `speed` times as fast (linear interpolation between its actions) and so
 executes only floor(11 / speed) + 1 actions of it before asking again; `gate` takes, per row, the far
 flow's chunk when the block is at least `radius` goal units from the goal (training.pace) and the near
 flow's otherwise, all 12 actions executed. Neither is a shippable policy (the first breaks the
-12-actions-open-loop rule, the second runs two networks); they measure what pace is worth. Prints one
-JSON line with the scores, as training.evaluate does. Tuning seeds only (default 300000).
+12-actions-open-loop rule, the second runs two networks); they measure what pace is worth. `phases`
+plays one flow as served and reports where its episodes spend their steps: the median step at which
+the block first covers 0.3 and 0.9 of the goal, and of success. Prints one JSON line, with the scores
+as training.evaluate prints them. Tuning seeds only (default 300000).
 """
 
 from __future__ import annotations
@@ -40,14 +43,41 @@ def main(argv: list[str] | None = None) -> int:
     gate.add_argument("--radius", type=float, default=2.0, help="goal distance (40 px + 0.6 rad per unit) that separates them")
     gate.add_argument("--far-noise-scale", type=float, default=1.0, help="start-noise multiplier of the far flow")
     gate.add_argument("--near-noise-scale", type=float, default=1.0, help="start-noise multiplier of the near flow")
-    for p in (resample, gate):
+    phases = sub.add_parser("phases", help="one flow as served: when its episodes first reach coverage 0.3, 0.9 and success", formatter_class=HelpFormatter)
+    phases.add_argument("--model", required=True, help="ONNX file or checkpoint stem")
+    phases.add_argument("--noise-scale", type=float, default=1.0, help="start-noise multiplier on top of the card's")
+    phases.add_argument("--max-steps", type=int, default=300, help="episode step limit")
+    for p in (resample, gate, phases):
         p.add_argument("--episodes", type=int, default=1000, help="episodes (seeds seed..seed+episodes-1)")
         p.add_argument("--seed", type=int, default=300000, help="first episode seed (use tuning seeds, never held-out ones)")
     args = parser.parse_args(argv)
-    act, action_horizon = resampled(args) if args.mode == "resample" else gated(args)
-    summary = run_episodes(act, list(range(args.seed, args.seed + args.episodes)), num_envs=100, action_horizon=action_horizon)
-    print(json.dumps({"mode": args.mode, **{k: v for k, v in vars(args).items() if k != "mode"}, **summary.scores()}))
+    seeds = list(range(args.seed, args.seed + args.episodes))
+    if args.mode == "phases":
+        summary = run_episodes(rollout_act(load_policy(args.model), args.noise_scale), seeds, num_envs=100, max_steps=args.max_steps,
+                               record_trajectories=True)
+        extra = phase_steps(summary)
+    else:
+        act, action_horizon = resampled(args) if args.mode == "resample" else gated(args)
+        summary, extra = run_episodes(act, seeds, num_envs=100, action_horizon=action_horizon), {}
+    print(json.dumps({"mode": args.mode, **{k: v for k, v in vars(args).items() if k != "mode"}, **summary.scores(), **extra}))
     return 0
+
+
+def phase_steps(summary) -> dict:
+    """Median first steps of coverage > 0.3 and > 0.9 over the episodes that reach them, and of success; counts beside."""
+    from pusht.geometry import coverage
+
+    firsts: dict[str, list[int]] = {"0.3": [], "0.9": [], "success": []}
+    for trajectory, episode in zip(summary.trajectories, summary.episodes):
+        covered = [coverage(float(s[2]), float(s[3]), float(s[4])) for s in trajectory.states]
+        for key in ("0.3", "0.9"):
+            step = next((t for t, c in enumerate(covered) if c > float(key)), None)
+            if step is not None:
+                firsts[key].append(step)
+        if episode.success:
+            firsts["success"].append(episode.length)
+    return {f"median_first_step_{k}": float(np.median(v)) if v else None for k, v in firsts.items()} | {
+        f"episodes_reaching_{k}": len(v) for k, v in firsts.items()}
 
 
 def resampled(args: argparse.Namespace):

@@ -39,6 +39,14 @@ def test_a_faster_pace_executes_fewer_actions():
     assert _run("resample", "--model", "models/flow.onnx", "--speed", "1.5")["action_horizon"] == 8
 
 
+def test_phases_count_the_steps_to_each_coverage(evaluated):
+    result = _run("phases", "--model", "models/flow.onnx")
+    assert result["success_rate"] == evaluated["success_rate"]
+    assert result["episodes_reaching_success"] == round(4 * evaluated["success_rate"]) <= result["episodes_reaching_0.9"] <= result["episodes_reaching_0.3"]
+    if result["episodes_reaching_success"]:
+        assert result["median_first_step_0.3"] <= result["median_first_step_0.9"] <= result["median_first_step_success"]
+
+
 def test_help():
     done = subprocess.run([*SCRIPT, "gate", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and "--radius" in done.stdout and "(default: 2.0)" in done.stdout
