@@ -82,6 +82,8 @@ def _changes(card: dict) -> str:
         parts.append(f"chunks at {config['action_speed']:g}x the demonstrations' pace{where}")
     if config.get("lr", 3e-4) != 3e-4:
         parts.append(f"lr {config['lr']:g}")
+    if config.get("seed", 0):
+        parts.append(f"seed {config['seed']}")
     if config.get("init"):
         parts.append(f"fine-tuned from {config['init']}")
     if config.get("extra_data"):
