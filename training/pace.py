@@ -11,7 +11,8 @@ from the goal:
     pace     = near + (far - near) * clip((distance - radius) / ramp, 0, 1)   (ramp > 0)
 
 It is a property of the training data only: the policy learns a pace per state, and its graph, inputs
-and outputs stay those of any flow.
+and outputs stay those of any flow. Measured so far (models/README.md, "Time, not skill"): with all 12
+actions of a chunk executed, flows trained at pace are not better than the shipped one.
 """
 
 from __future__ import annotations
