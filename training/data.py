@@ -106,7 +106,7 @@ def make_windows(replay: Replay, horizon: int = DEFAULT_HORIZON, pad_end: bool =
     At pace s (a number, or a `Pace` that sets it per window from its state), action k of a chunk is
     the demonstration's at frame t + s k, linearly interpolated: the demonstrated path s times as fast.
     """
-    pace = pace if isinstance(pace, Pace) else Pace(float(pace))
+    pace = Pace.of(pace)
     starts = window_frames(replay, horizon, pad_end, pace.fastest)
     states = replay.states[starts].copy()
     if pace.is_uniform:  # integer frames: the demonstration's actions exactly
@@ -185,7 +185,7 @@ def training_set(data: str | Path, horizon: int = DEFAULT_HORIZON, pad_end: bool
     `pace`: how fast the chunks play the demonstrations (`make_windows`, training.pace)."""
     if extra_stride < 1:
         raise ValueError(f"extra_stride must be >= 1, got {extra_stride}")
-    pace = pace if isinstance(pace, Pace) else Pace(float(pace))
+    pace = Pace.of(pace)
     replay = load_replay(data)
     states, chunks = make_windows(replay, horizon, pad_end, pace)
     demo_windows = len(states)

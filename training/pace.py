@@ -52,6 +52,11 @@ class Pace:
         if not (self.radius >= 0 and self.ramp >= 0):
             raise ValueError(f"pace radius and ramp must be >= 0, got {self.radius} and {self.ramp}")
 
+    @classmethod
+    def of(cls, pace: "Pace | float") -> "Pace":
+        """`pace` itself, or a uniform pace of that number."""
+        return pace if isinstance(pace, Pace) else cls(float(pace))
+
     @property
     def near_pace(self) -> float:
         """The pace near the goal."""
