@@ -109,15 +109,12 @@ def make_windows(replay: Replay, horizon: int = DEFAULT_HORIZON, pad_end: bool =
     pace = Pace.of(pace)
     starts = window_frames(replay, horizon, pad_end, pace.fastest)
     states = replay.states[starts].copy()
-    if pace.is_uniform:  # integer frames: the demonstration's actions exactly
-        positions = starts[:, None] + np.arange(horizon)[None, :]
-    else:
-        positions = starts[:, None] + pace.speeds(states)[:, None] * np.arange(horizon)[None, :]
+    positions = starts[:, None] + pace.speeds(states)[:, None] * np.arange(horizon)[None, :]
     if pad_end:
         last = np.repeat(replay.episode_ends - 1, np.diff(np.concatenate([[0], replay.episode_ends])))[starts]
         positions = np.minimum(positions, last[:, None])
-    if pace.is_uniform:
-        return states, replay.actions[positions]
+    if pace.is_uniform:  # integer frames: the demonstration's actions exactly
+        return states, replay.actions[positions.astype(np.int64)]
     below = np.floor(positions).astype(np.int64)
     above = np.minimum(below + 1, np.ceil(positions).astype(np.int64))  # never past the clamp (an episode's last frame)
     weight = (positions - below)[..., None]
