@@ -142,7 +142,7 @@ def rollout_act(policy: Policy, noise_scale: float = 1.0):
     if not 0 <= noise_scale <= 10:
         raise ValueError(f"noise_scale must be in [0, 10], got {noise_scale}")
 
-    def act(states: np.ndarray, seeds: list[int]) -> np.ndarray:
-        return policy.act(states, seeds=seeds, noise_scale=noise_scale)
+    def act(states: np.ndarray, seeds: list[int], prev_states: np.ndarray | None = None) -> np.ndarray:
+        return policy.act(states, prev_states, seeds=seeds, noise_scale=noise_scale)
 
     return act

@@ -39,6 +39,7 @@ class TorchPolicy(Policy):
             require_regular_file(card.stem.with_suffix(".safetensors"), "weights file")
             module = load_acting_policy(card.stem)
         self.module = module
+        self.takes_prev_state = bool(module.policy.architecture.get("prev_state", False))
 
     @classmethod
     def from_module(cls, module: Any, name: str = "in-memory") -> "TorchPolicy":
@@ -58,11 +59,12 @@ class TorchPolicy(Policy):
         try:
             with torch.inference_mode():
                 state_t = torch.from_numpy(states)
+                prev_t = None if prev_states is None else torch.from_numpy(prev_states)
                 if noise is None:
-                    out = self.module(state_t)
+                    out = self.module(state_t, prev_state=prev_t)
                 else:
                     steps = self.default_num_steps if num_steps is None else num_steps
-                    out = self.module(state_t, torch.from_numpy(noise), steps)
+                    out = self.module(state_t, torch.from_numpy(noise), steps, prev_t)
         finally:
             self.module.train(was_training)
         return out.numpy()

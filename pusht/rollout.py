@@ -54,8 +54,9 @@ __all__ = [
     "write_episode_records",
 ]
 
-ActFn = Callable[[np.ndarray, list[int]], np.ndarray]
-"""(states [B, 5] float32 in env units, one request seed per row) -> actions [B, H, 2], H >= action_horizon."""
+ActFn = Callable[..., np.ndarray]
+"""(states [B, 5] float32 in env units, one request seed per row) -> actions [B, H, 2], H >= action_horizon; with
+`run_episodes(..., prev_states=True)` a third argument, the states one env step before (`states` at an episode's start)."""
 
 ProgressFn = Callable[[int, int], None]
 """(episodes_done, episodes_total) -> None, called after every finished episode."""
@@ -75,10 +76,12 @@ def run_episodes(
     progress: bool | ProgressFn = False,
     record_frames: bool | FrameFn = False,
     record_trajectories: bool = False,
+    prev_states: bool = False,
 ) -> RolloutSummary:
     """Play one episode per seed with `num_envs` envs in lockstep, one `act` call per decision, row seeds `decision_seed(e, d)`.
 
     `action_horizon`: actions of each chunk run open loop (None: the whole chunk, as long as the first call's).
+    `prev_states`: also give `act` each env's observation one step before its current one (a policy with history).
     `progress`: bool or `(done, total)`; `record_frames`: keep the first episode's frames (through a FrameFn if callable).
     """
     seeds = _check_seeds(seeds)
@@ -96,7 +99,7 @@ def run_episodes(
     envs = [env_factory() for _ in range(num_envs)]
     try:
         results, frames, trajectories, decisions, action_horizon = _lockstep(
-            envs, act, seeds, max_steps, action_horizon, report, record_frames, record_trajectories
+            envs, act, seeds, max_steps, action_horizon, report, record_frames, record_trajectories, prev_states
         )
     finally:
         for env in envs:
@@ -137,6 +140,7 @@ class _Slot:
     env: Any
     index: int = -1  # position of the episode's seed in `seeds`; -1 when idle
     obs: np.ndarray | None = None
+    prev_obs: np.ndarray | None = None  # the observation one step before obs (obs itself at the episode's start)
     length: int = 0
     decisions: int = 0  # the episode's own decision counter: its request seeds depend on nothing else
     max_reward: float = 0.0
@@ -146,7 +150,7 @@ class _Slot:
     actions: list[np.ndarray] = field(default_factory=list)
 
 
-def _lockstep(envs, act, seeds, max_steps, action_horizon, report, record_frames, record_trajectories):
+def _lockstep(envs, act, seeds, max_steps, action_horizon, report, record_frames, record_trajectories, with_prev=False):
     results: list[EpisodeResult | None] = [None] * len(seeds)
     trajectories: list[Trajectory | None] = [None] * len(seeds)
     frames: list[np.ndarray] = []
@@ -163,7 +167,7 @@ def _lockstep(envs, act, seeds, max_steps, action_horizon, report, record_frames
         slot.index = next_index
         next_index += 1
         obs, info = slot.env.reset(seed=seeds[slot.index])
-        slot.obs = np.asarray(obs, dtype=np.float64)
+        slot.obs = slot.prev_obs = np.asarray(obs, dtype=np.float64)
         slot.length = slot.decisions = 0
         slot.max_reward = 0.0
         slot.success = False
@@ -182,7 +186,11 @@ def _lockstep(envs, act, seeds, max_steps, action_horizon, report, record_frames
             break
         states = np.stack([s.obs for s in running]).astype(np.float32)
         row_seeds = [decision_seed(seeds[s.index], s.decisions) for s in running]
-        chunk = _check_actions(act(states, row_seeds), len(running), action_horizon)
+        if with_prev:
+            prev = np.stack([s.prev_obs for s in running]).astype(np.float32)
+            chunk = _check_actions(act(states, row_seeds, prev), len(running), action_horizon)
+        else:
+            chunk = _check_actions(act(states, row_seeds), len(running), action_horizon)
         if action_horizon is None:
             action_horizon = chunk.shape[1]  # the policy's chunk length: every later chunk runs as many actions
         decisions += 1
@@ -195,7 +203,7 @@ def _lockstep(envs, act, seeds, max_steps, action_horizon, report, record_frames
                     slot.states.append(slot.obs.astype(np.float32))
                     slot.actions.append(chunk[row, t])
                 obs, reward, terminated, truncated, info = slot.env.step(chunk[row, t])
-                slot.obs = np.asarray(obs, dtype=np.float64)
+                slot.prev_obs, slot.obs = slot.obs, np.asarray(obs, dtype=np.float64)
                 slot.length += 1
                 slot.max_reward = max(slot.max_reward, float(reward))
                 slot.coverage = float(info["coverage"])

@@ -75,7 +75,9 @@ def _changes(card: dict) -> str:
         parts.append(f"state noise {noise[0]}->{noise[1]} {noise[2]}")
     if config.get("pad_episode_end"):
         parts.append("end-padded windows")
-    if config.get("action_speed", 1.0) != 1.0:
+    if config.get("pace_copies"):
+        parts.append(f"each window {config['pace_copies']} times at paces 1..{config['action_speed']:g}x, the pace an input")
+    elif config.get("action_speed", 1.0) != 1.0:
         near = config.get("action_speed_near") or config["action_speed"]
         ramp = f", rising over {config['speed_ramp']:g}" if config.get("speed_ramp") else ""
         where = f" ({near:g}x within {config['speed_radius']:g} of the goal{ramp})" if near != config["action_speed"] else ""

@@ -20,12 +20,13 @@ ANGLE_ENCODINGS = ("raw", "sincos", "keypoints")
 TIME_EMBEDDINGS = ("scalar", "sinusoidal")
 DEFAULT_TIME_EMBEDDING_DIM = 32
 _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
-MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame")
+MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame", "prev_state", "pace_input", "acting_pace")
 FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale", "steering_dims", "selector_dims", "selector_candidates")
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 _VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar",
                      "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0, "steering_dims": None,
-                     "selector_dims": None, "selector_candidates": 16}
+                     "selector_dims": None, "selector_candidates": 16, "prev_state": False,
+                     "pace_input": False, "acting_pace": None}
 
 
 def architecture_dict(arch: dict[str, Any]) -> dict[str, Any]:
@@ -79,8 +80,19 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         raise ValueError(f"action_frame must be one of {ACTION_FRAMES}, got {variants['action_frame']!r}")
     if "angle_encoding" in variants and variants["angle_encoding"] not in ANGLE_ENCODINGS:
         raise ValueError(f"angle_encoding must be one of {ANGLE_ENCODINGS}, got {variants['angle_encoding']!r}")
-    if "state_skip" in variants and not isinstance(variants["state_skip"], bool):
-        raise ValueError(f"state_skip must be true or false, got {variants['state_skip']!r}")
+    for key in ("state_skip", "prev_state", "pace_input"):
+        if key in variants and not isinstance(variants[key], bool):
+            raise ValueError(f"{key} must be true or false, got {variants[key]!r}")
+    if variants.get("acting_pace") is not None:
+        rule = variants["acting_pace"]
+        if isinstance(rule, (str, bytes)) or not isinstance(rule, Sequence) or len(rule) != 4 or any(
+            isinstance(v, bool) or not isinstance(v, (int, float)) for v in rule
+        ):
+            raise ValueError(f"acting_pace must be [far, near, radius, ramp] (training.pace), got {rule!r}")
+        from training.pace import Pace
+
+        Pace(*map(float, rule))  # its own range checks
+        variants["acting_pace"] = [float(v) for v in rule]
     if "time_embedding" in variants:
         if variants["time_embedding"] not in TIME_EMBEDDINGS:
             raise ValueError(f"time_embedding must be one of {TIME_EMBEDDINGS}, got {variants['time_embedding']!r}")

@@ -51,6 +51,7 @@ class TrainConfig:
     action_speed_near: float = _f(0.0, "the pace of windows whose block is within --speed-radius of the goal (0: --action-speed everywhere)")
     speed_radius: float = _f(0.0, "goal distance (40 px + 0.6 rad per unit, training.pace) inside which --action-speed-near applies")
     speed_ramp: float = _f(0.0, "goal distances beyond --speed-radius over which the pace rises linearly to --action-speed (0: a step)")
+    pace_copies: int = _f(0, "for a policy with the pace as an input (--arch '{\"pace_input\": true, \"acting_pace\": [far, near, radius, ramp]}'): each demonstration window this many times, at paces drawn uniformly in [1, --action-speed] (0: no pace input)")
     # 0.05 is the recipe; policy-quality.md measured 0.15 and 0.3 hurting, 0.02 and 0.05 within noise.
     state_noise_start: float = _f(0.05, "std of Gaussian noise on normalized training states at step 0")
     state_noise_end: float = _f(0.0, "std of that noise at the last step")
@@ -88,6 +89,8 @@ class TrainConfig:
             (self.action_speed_near == 0 or 0.25 <= self.action_speed_near <= 4, f"action_speed_near must be 0 or in [0.25, 4], got {self.action_speed_near}"),
             (self.speed_radius >= 0, f"speed_radius must be >= 0, got {self.speed_radius}"),
             (self.speed_ramp >= 0, f"speed_ramp must be >= 0, got {self.speed_ramp}"),
+            (0 <= self.pace_copies <= 16, f"pace_copies must be in [0, 16], got {self.pace_copies}"),
+            (not self.pace_copies or self.action_speed_near == 0, "pace_copies draws paces in [1, --action-speed]; --action-speed-near does not apply"),
             (self.state_noise_start >= 0 and self.state_noise_end >= 0, "state noise stds must be >= 0"),
             (self.eval_every >= -1, f"eval_every must be >= -1, got {self.eval_every}"),
             (self.eval_episodes >= 1, f"eval_episodes must be >= 1, got {self.eval_episodes}"),
@@ -120,7 +123,7 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of every field; the weights and the pace only when set, so configs saved before they existed match (--resume)."""
         unset = {"human_weight": 1.0, "policy_step_weight": 1.0, "action_speed": 1.0, "action_speed_near": 0.0, "speed_radius": 0.0,
-                 "speed_ramp": 0.0}
+                 "speed_ramp": 0.0, "pace_copies": 0}
         return {k: v for k, v in asdict(self).items() if not (k in unset and v == unset[k])}
 
     def pace(self) -> Pace:

@@ -109,17 +109,24 @@ def make_windows(replay: Replay, horizon: int = DEFAULT_HORIZON, pad_end: bool =
     pace = Pace.of(pace)
     starts = window_frames(replay, horizon, pad_end, pace.fastest)
     states = replay.states[starts].copy()
-    positions = starts[:, None] + pace.speeds(states)[:, None] * np.arange(horizon)[None, :]
+    return states, chunks_at(replay, starts, pace.speeds(states), horizon, pad_end)
+
+
+def chunks_at(replay: Replay, starts: np.ndarray, speeds: np.ndarray, horizon: int = DEFAULT_HORIZON,
+              pad_end: bool = False) -> np.ndarray:
+    """Action chunks [W, horizon, 2] starting at frames `starts`, action k the demonstration's at frame t + speeds[w] k
+    (interpolated; with `pad_end`, the episode's last action past its end)."""
+    positions = starts[:, None] + np.asarray(speeds, dtype=np.float64)[:, None] * np.arange(horizon)[None, :]
     if pad_end:
         last = np.repeat(replay.episode_ends - 1, np.diff(np.concatenate([[0], replay.episode_ends])))[starts]
         positions = np.minimum(positions, last[:, None])
-    if pace.is_uniform:  # integer frames: the demonstration's actions exactly
-        return states, replay.actions[positions.astype(np.int64)]
+    if np.all(speeds == 1.0):  # integer frames: the demonstration's actions exactly
+        return replay.actions[positions.astype(np.int64)]
     below = np.floor(positions).astype(np.int64)
     above = np.minimum(below + 1, np.ceil(positions).astype(np.int64))  # never past the clamp (an episode's last frame)
     weight = (positions - below)[..., None]
     chunks = (1 - weight) * replay.actions[below] + weight * replay.actions[above]
-    return states, chunks.astype(np.float32)
+    return chunks.astype(np.float32)
 
 
 def window_frames(replay: Replay, horizon: int = DEFAULT_HORIZON, pad_end: bool = False, speed: float = 1.0) -> np.ndarray:
@@ -153,8 +160,10 @@ class TrainingSet:
 
     states: torch.Tensor  # [W, 5]
     chunks: torch.Tensor  # [W, H, 2]
+    prev_states: torch.Tensor  # [W, 5]: the state a step before (the state itself at an episode's first frame)
     demonstrations: Replay  # the first demo_windows rows are its windows, the rest come from extra data
     demo_windows: int
+    paces: torch.Tensor | None = None  # [W]: each chunk's pace, for a policy that takes it as an input; None: no pace input
     weights: torch.Tensor | None = None  # sampling weight per window; None: all equal (plain permutations)
 
     def __len__(self) -> int:
@@ -174,17 +183,30 @@ class TrainingSet:
 
 
 def training_set(data: str | Path, horizon: int = DEFAULT_HORIZON, pad_end: bool = False, extra_data: tuple[str | Path, ...] = (),
-                 human_weight: float = 1.0, policy_step_weight: float = 1.0, extra_stride: int = 1, pace: Pace | float = 1.0) -> TrainingSet:
+                 human_weight: float = 1.0, policy_step_weight: float = 1.0, extra_stride: int = 1, pace: Pace | float = 1.0,
+                 pace_copies: int = 0, seed: int = 0) -> TrainingSet:
     """The demonstrations' windows plus those of `extra_data`, in env units.
 
     Extra windows whose first action a human gave (data/human) weigh `human_weight`, the others of such stores `policy_step_weight`.
     With `extra_stride` k, extra windows start only every k-th frame of an episode (a policy's decision points when k is its chunk length).
-    `pace`: how fast the chunks play the demonstrations (`make_windows`, training.pace)."""
+    `pace`: how fast the chunks play the demonstrations (`make_windows`, training.pace). With `pace_copies` K, each
+    demonstration window appears K times instead, at paces drawn uniformly between 1 and `pace.fastest` (seeded by
+    `seed`), and the set carries them (`paces`) for a policy that takes the pace as an input."""
     if extra_stride < 1:
         raise ValueError(f"extra_stride must be >= 1, got {extra_stride}")
     pace = Pace.of(pace)
     replay = load_replay(data)
-    states, chunks = make_windows(replay, horizon, pad_end, pace)
+    frames = window_frames(replay, horizon, pad_end, pace.fastest)
+    paces = None
+    if pace_copies:
+        if extra_data:
+            raise ValueError("a pace input trains on the demonstrations alone; drop the extra data")
+        frames = np.repeat(frames, pace_copies)
+        paces = np.random.default_rng(seed).uniform(1.0, pace.fastest, len(frames))
+        states, chunks = replay.states[frames].copy(), chunks_at(replay, frames, paces, horizon, pad_end)
+    else:
+        states, chunks = make_windows(replay, horizon, pad_end, pace)
+    prev_states = previous_states(replay, frames)
     demo_windows = len(states)
     weights = [np.ones(demo_windows)]
     for extra in extra_data:
@@ -194,6 +216,7 @@ def training_set(data: str | Path, horizon: int = DEFAULT_HORIZON, pad_end: bool
         keep = _frame_in_episode(frames, extra_replay.episode_ends) % extra_stride == 0
         extra_states, extra_chunks, frames = extra_states[keep], extra_chunks[keep], frames[keep]
         states, chunks = np.concatenate([states, extra_states]), np.concatenate([chunks, extra_chunks])
+        prev_states = np.concatenate([prev_states, previous_states(extra_replay, frames)])
         labels = human_labels(extra, len(extra_replay.states))
         starts_human = labels[frames] if labels is not None else None
         weights.append(np.ones(len(extra_states)) if starts_human is None else np.where(starts_human, human_weight, policy_step_weight))
@@ -201,11 +224,19 @@ def training_set(data: str | Path, horizon: int = DEFAULT_HORIZON, pad_end: bool
     return TrainingSet(
         states=torch.as_tensor(np.asarray(states, dtype=np.float32)),
         chunks=torch.as_tensor(np.asarray(chunks, dtype=np.float32)),
+        prev_states=torch.as_tensor(np.asarray(prev_states, dtype=np.float32)),
+        paces=None if paces is None else torch.as_tensor(paces, dtype=torch.float32),
         demonstrations=replay,
         demo_windows=demo_windows,
         # all ones samples exactly as before the weights existed (plain permutations, same draws)
         weights=None if np.all(weights == 1.0) else torch.as_tensor(weights, dtype=torch.float64),
     )
+
+
+def previous_states(replay: Replay, frames: np.ndarray) -> np.ndarray:
+    """The state one step before each of `frames` (global indices), or the frame's own at its episode's start, as an env reports them."""
+    first = _frame_in_episode(frames, replay.episode_ends) == 0
+    return replay.states[np.where(first, frames, frames - 1)]
 
 
 def _frame_in_episode(frames: np.ndarray, episode_ends: np.ndarray) -> np.ndarray:

@@ -130,6 +130,7 @@ def evaluate_policy(
         progress=progress,
         record_frames=annotated_frame if record_frames else False,
         record_trajectories=record_trajectories,
+        prev_states=policy.takes_prev_state,
     )
 
 

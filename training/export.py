@@ -103,8 +103,8 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
     if out.suffix != ".onnx":
         raise ValueError(f"{out}: the output file must end in .onnx")
     acting = load_acting_policy(stem, num_steps=num_steps).eval()
-    graph = _GraphModule(acting).eval()
-    inputs = ["state", "noise"] if acting.kind == "flow" else ["state"]
+    inputs = graph_inputs(acting)
+    graph = _GraphModule(acting, inputs).eval()
     example = _example_inputs(acting, batch=4, seed=0)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp.onnx")
@@ -142,7 +142,7 @@ def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...]
     except onnx.checker.ValidationError as exc:
         raise ValueError(f"{path}: invalid ONNX model: {exc}") from None
     session = onnx_session(path)
-    expected_inputs = ["state", "noise"] if acting.kind == "flow" else ["state"]
+    expected_inputs = graph_inputs(acting)
     names = [i.name for i in session.get_inputs()]
     if names != expected_inputs or [o.name for o in session.get_outputs()] != ["actions"]:
         raise ValueError(f"{path}: inputs {names} / outputs {[o.name for o in session.get_outputs()]}, expected {expected_inputs} / ['actions']")
@@ -150,7 +150,7 @@ def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...]
     for i, batch in enumerate(batches):
         example = _example_inputs(acting, batch=batch, seed=1000 + i)
         with torch.inference_mode():
-            want = acting(*example).numpy()
+            want = _GraphModule(acting, expected_inputs)(*example).numpy()
         got = session.run(["actions"], {name: t.numpy() for name, t in zip(expected_inputs, example)})[0]
         if got.dtype != np.float32 or got.shape != want.shape:
             raise ValueError(f"{path}: output {got.dtype} {list(got.shape)}, expected float32 {list(want.shape)}")
@@ -167,33 +167,45 @@ def _model_opset(path: Path) -> int:
     return next(o.version for o in model.opset_import if o.domain in ("", "ai.onnx"))
 
 
-class _GraphModule(torch.nn.Module):
-    """The exported signature: forward(state) for MSE, forward(state, noise) for flow."""
+def graph_inputs(acting: ActingPolicy) -> list[str]:
+    """The graph's input names in order: `state`, flow's `noise`, and `prev_state` for a policy with history."""
+    names = ["state", "noise"] if acting.kind == "flow" else ["state"]
+    return names + ["prev_state"] if acting.policy.prev_state else names
 
-    def __init__(self, acting: ActingPolicy) -> None:
+
+class _GraphModule(torch.nn.Module):
+    """The exported signature: forward(*inputs) in the order `graph_inputs` names them."""
+
+    def __init__(self, acting: ActingPolicy, inputs: list[str]) -> None:
         super().__init__()
         self.acting = acting
+        self.inputs = inputs
 
-    def forward(self, state: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
-        return self.acting(state, noise) if noise is not None else self.acting(state)
+    def forward(self, *args: torch.Tensor) -> torch.Tensor:
+        named = dict(zip(self.inputs, args))
+        return self.acting(named["state"], named.get("noise"), prev_state=named.get("prev_state"))
 
 
 def _example_inputs(acting: ActingPolicy, batch: int, seed: int) -> tuple[torch.Tensor, ...]:
-    """Env-unit states spread over the arena (the last dimension an angle in [0, 2π)) and, for flow, standard-normal
-    noise, in the checkpoint's own shapes."""
+    """Env-unit states spread over the arena (the last dimension an angle in [0, 2π)), for flow standard-normal noise,
+    and for a policy with history the states a step before (up to 10 px and 0.1 rad away), in the checkpoint's own shapes."""
     policy = acting.policy
     gen = torch.Generator().manual_seed(seed)
     scale = torch.tensor([512.0] * (policy.state_dim - 1) + [2 * np.pi])
     state = torch.rand(batch, policy.state_dim, generator=gen) * scale
+    out = [state]
     if acting.kind == "flow":
-        return state, torch.randn(batch, policy.horizon, policy.action_dim, generator=gen)
-    return (state,)
+        out.append(torch.randn(batch, policy.horizon, policy.action_dim, generator=gen))
+    if policy.prev_state:
+        step = torch.tensor([10.0] * (policy.state_dim - 1) + [0.1])
+        out.append(state + (2 * torch.rand(batch, policy.state_dim, generator=gen) - 1) * step)
+    return tuple(out)
 
 
 def _torch_export(graph: torch.nn.Module, example: tuple[torch.Tensor, ...], inputs: list[str], path: Path, opset: int) -> None:
     """torch.onnx.export with the dynamo exporter, a dynamic batch dimension and the weights inside the one file."""
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
-    dynamic = {name: {0: batch} for name in inputs}
+    dynamic = {"args": tuple({0: batch} for _ in inputs)}  # `_GraphModule.forward(*args)`
     # The exporter logs and warns a lot (missing torchvision, deprecations): keep stderr for real errors.
     loggers = [logging.getLogger(n) for n in ("torch.onnx", "torch.export", "torch._dynamo", "onnxscript")]
     levels = [lg.level for lg in loggers]

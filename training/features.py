@@ -1,6 +1,8 @@
-"""State features computed inside the policy (and so inside its ONNX graph): the tee's corners in the arena."""
+"""State features computed inside the policy (and so inside its ONNX graph): the tee's corners in the arena, and the motion since the previous step."""
 
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -20,3 +22,19 @@ def tee_keypoints(pose: torch.Tensor) -> torch.Tensor:
     x = pose[:, 0:1] + cos * corners[:, 0] - sin * corners[:, 1]
     y = pose[:, 1:2] + sin * corners[:, 0] + cos * corners[:, 1]
     return (torch.stack([x, y], dim=2).flatten(1) - _CENTER) / _SCALE
+
+
+MOTION_FEATURES = 5
+# About the demonstrations' per-step std of each channel (agent x, y; block x, y in px; angle in rad), so the
+# features are of order 1 without statistics to carry in the card.
+_MOTION_SCALE = (8.0, 8.0, 2.0, 2.0, 0.03)
+
+
+def motion_features(state: torch.Tensor, prev_state: torch.Tensor) -> torch.Tensor:
+    """The change [B, 5] from env-unit `prev_state` to `state` (the angle's wrapped to [-pi, pi)), scaled to about unit std.
+
+    The five numbers show no velocity, and the agent is a PD-controlled body: where it is going depends on how it moves."""
+    delta = state - prev_state
+    angle = torch.remainder(delta[:, 4:5] + math.pi, 2 * math.pi) - math.pi
+    delta = torch.cat([delta[:, :4], angle], dim=1)
+    return delta / torch.tensor(_MOTION_SCALE, dtype=state.dtype, device=state.device)

@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from pusht.geometry import GOAL_POSE
 
@@ -29,9 +30,14 @@ POSITION_UNIT, ANGLE_UNIT = 40.0, 0.6  # px and rad that count as one unit of go
 
 def goal_distance(states: np.ndarray) -> np.ndarray:
     """Distance [N] of env-unit states' [N, 5] blocks from the goal pose, in goal units (40 px or 0.6 rad each)."""
-    states = np.asarray(states, dtype=np.float64)
-    offset = np.hypot(states[:, 2] - GOAL_POSE[0], states[:, 3] - GOAL_POSE[1])
-    turn = np.abs((states[:, 4] - GOAL_POSE[2] + math.pi) % (2 * math.pi) - math.pi)
+    return goal_distance_t(torch.as_tensor(np.asarray(states, dtype=np.float64))).numpy()
+
+
+def goal_distance_t(states: torch.Tensor) -> torch.Tensor:
+    """`goal_distance` in torch (inside a policy's graph)."""
+    # not torch.hypot: the ONNX exporter has no conversion for it
+    offset = torch.sqrt((states[:, 2] - GOAL_POSE[0]) ** 2 + (states[:, 3] - GOAL_POSE[1]) ** 2)
+    turn = torch.abs(torch.remainder(states[:, 4] - GOAL_POSE[2] + math.pi, 2 * math.pi) - math.pi)
     return offset / POSITION_UNIT + turn / ANGLE_UNIT
 
 
@@ -67,16 +73,15 @@ class Pace:
         """The largest pace any window gets."""
         return max(self.far, self.near_pace)
 
-    @property
-    def is_uniform(self) -> bool:
-        """Whether every window gets the demonstrators' own pace (1)."""
-        return self.far == 1.0 and self.near_pace == 1.0
-
     def speeds(self, states: np.ndarray) -> np.ndarray:
         """The pace [N] of windows starting in env-unit states [N, 5]."""
+        return self.speeds_t(torch.as_tensor(np.asarray(states, dtype=np.float64))).numpy()
+
+    def speeds_t(self, states: torch.Tensor) -> torch.Tensor:
+        """`speeds` in torch: what a policy with a pace input acts at (`acting_pace`, inside its graph)."""
         if (self.radius == 0 and self.ramp == 0) or self.far == self.near_pace:
-            return np.full(len(states), self.far)
-        distance = goal_distance(states)
+            return torch.full_like(states[:, 0], self.far)
+        distance = goal_distance_t(states)
         if self.ramp == 0:
-            return np.where(distance >= self.radius, self.far, self.near_pace)
-        return self.near_pace + (self.far - self.near_pace) * np.clip((distance - self.radius) / self.ramp, 0.0, 1.0)
+            return torch.where(distance >= self.radius, self.far, self.near_pace).to(states.dtype)
+        return self.near_pace + (self.far - self.near_pace) * torch.clamp((distance - self.radius) / self.ramp, 0.0, 1.0)

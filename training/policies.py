@@ -20,13 +20,14 @@ from torch import nn
 from torch.nn import functional as F
 
 from pusht.spec import ACTION_DIM, ACTION_HIGH, ACTION_LOW, DEFAULT_HORIZON, DEFAULT_NUM_STEPS, POLICY_KINDS, STATE_DIM
-from training.features import KEYPOINT_FEATURES, tee_keypoints
+from training.features import KEYPOINT_FEATURES, MOTION_FEATURES, motion_features, tee_keypoints
 from training.architecture import (
     DEFAULT_DROPOUT, DEFAULT_TIME_EMBEDDING_DIM, FLOW_ARCH_KEYS, FLOW_HIDDEN_DIMS, MSE_ARCH_KEYS, MSE_HIDDEN_DIMS,
     architecture_dict, check_architecture,
 )
 from training.networks import StateSkipMLP, mlp
 from training.normalization import Normalizer
+from training.pace import Pace
 
 # Angular frequencies (rad per unit t) of the sinusoidal time embedding: slow enough to stay monotonic
 # over t in [0, 1], fast enough to separate nearby Euler steps.
@@ -78,7 +79,12 @@ class _ChunkPolicy(nn.Module):
         self.action_frame = arch["action_frame"]
         self.normalizer = Normalizer(self.state_dim, self.action_dim, self.action_frame)
         self.angle_encoding = arch["angle_encoding"]
-        return self.state_dim + {"raw": 0, "sincos": 1, "keypoints": 1 + KEYPOINT_FEATURES}[self.angle_encoding]
+        self.prev_state = arch["prev_state"]
+        self.pace_input = arch["pace_input"]
+        # where a pace input acts: the card's rule (training.pace), else the demonstrators' own pace
+        self.acting_pace = Pace(*arch["acting_pace"]) if arch["acting_pace"] is not None else Pace()
+        extra = (MOTION_FEATURES if self.prev_state else 0) + (1 if self.pace_input else 0)
+        return self.state_dim + extra + {"raw": 0, "sincos": 1, "keypoints": 1 + KEYPOINT_FEATURES}[self.angle_encoding]
 
     @property
     def architecture(self) -> dict[str, Any]:
@@ -94,31 +100,49 @@ class _ChunkPolicy(nn.Module):
     def _run_net(self, inputs: torch.Tensor, encoded: torch.Tensor) -> torch.Tensor:
         return self.net(inputs, encoded) if self.state_skip else self.net(inputs)
 
+    def policy_state(self, state: torch.Tensor, prev_state: torch.Tensor | None = None, pace: torch.Tensor | None = None) -> torch.Tensor:
+        """What the network is given of env-unit states [B, S]: the normalized state; with `prev_state` in the architecture
+        the motion since the previous step's states (`prev_state`; None: the episode's first step, no motion); with
+        `pace_input` the chunk's pace (`pace` [B]; None: the card's `acting_pace` rule of the state)."""
+        parts = [self.normalizer.state(state)]
+        if self.prev_state:
+            parts.append(motion_features(state, state if prev_state is None else prev_state))
+        if self.pace_input:
+            pace = self.acting_pace.speeds_t(state) if pace is None else pace
+            parts.append(pace.reshape(-1, 1).to(state.dtype) - 1.0)
+        return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
+
     def encode_state(self, state_n: torch.Tensor) -> torch.Tensor:
-        """The network's view of normalized states [B, S]: unchanged ("raw"), or the angle (last channel) as sin, cos of the raw
-        angle ("sincos"), and with "keypoints" the tee's corners in the arena too."""
+        """The network's view of `policy_state` rows: unchanged ("raw"), or the angle as sin, cos of the raw angle
+        ("sincos"), and with "keypoints" the tee's corners in the arena too; the motion features follow unchanged."""
         if self.angle_encoding == "raw":
             return state_n
-        raw = state_n * self.normalizer.state_std + self.normalizer.state_mean
+        base, motion = state_n[:, : self.state_dim], state_n[:, self.state_dim :]
+        raw = base * self.normalizer.state_std + self.normalizer.state_mean
         angle = raw[:, -1:]
-        parts = [state_n[:, :-1], torch.sin(angle), torch.cos(angle)]
+        parts = [base[:, :-1], torch.sin(angle), torch.cos(angle)]
         if self.angle_encoding == "keypoints":
             parts.append(tee_keypoints(raw[:, 2:5]))
+        parts.append(motion)
         return torch.cat(parts, dim=1)
 
     def compute_loss(self, state: torch.Tensor, action_chunk: torch.Tensor, state_noise: float = 0.0,
-                     generator: torch.Generator | None = None) -> torch.Tensor:
-        """The loss of env-unit states [B, S] and chunks [B, H, A]; `state_noise`: std of Gaussian noise on the normalized states."""
+                     generator: torch.Generator | None = None, prev_state: torch.Tensor | None = None,
+                     pace: torch.Tensor | None = None) -> torch.Tensor:
+        """The loss of env-unit states [B, S] (and the states a step before, the chunks' paces: `policy_state`) and chunks
+        [B, H, A]; `state_noise`: std of Gaussian noise on the network's normalized inputs."""
         self.normalizer.require()
-        state_n = self.normalizer.state(state)
+        state_n = self.policy_state(state, prev_state, pace)
         chunk_n = self.normalizer.chunk(state, action_chunk)  # the frame follows the clean state
         if state_noise > 0:
             state_n = state_n + state_noise * torch.randn(state_n.shape, generator=generator, device=state_n.device, dtype=state_n.dtype)
         return self.normalized_loss(state_n, chunk_n, generator=generator)
 
-    def act(self, state: torch.Tensor, noise: torch.Tensor | None = None, num_steps: int = DEFAULT_NUM_STEPS) -> torch.Tensor:
-        """Env-unit actions [B, H, A], clipped to the arena, for env-unit states [B, S]; MSE ignores `noise` and `num_steps`."""
-        chunk_n = self.sample_actions(self.normalizer.state(state), noise=noise, num_steps=num_steps)
+    def act(self, state: torch.Tensor, noise: torch.Tensor | None = None, num_steps: int = DEFAULT_NUM_STEPS,
+            prev_state: torch.Tensor | None = None) -> torch.Tensor:
+        """Env-unit actions [B, H, A], clipped to the arena, for env-unit states [B, S] (and the states a step before, where the
+        architecture takes them); MSE ignores `noise` and `num_steps`."""
+        chunk_n = self.sample_actions(self.policy_state(state, prev_state), noise=noise, num_steps=num_steps)
         return torch.clamp(self.normalizer.actions(state, chunk_n), ACTION_LOW, ACTION_HIGH)
 
 
@@ -137,11 +161,14 @@ class MSEPolicy(_ChunkPolicy):
         angle_encoding: str = "raw",
         state_skip: bool = False,
         action_frame: str = "absolute",
+        prev_state: bool = False,
+        pace_input: bool = False,
+        acting_pace: Sequence[float] | None = None,
     ) -> None:
         super().__init__()
         encoded_dim = self._init_common(check_architecture(
             hidden_dims, dropout, horizon, action_dim, state_dim, angle_encoding=angle_encoding, state_skip=state_skip,
-            action_frame=action_frame))
+            action_frame=action_frame, prev_state=prev_state, pace_input=pace_input, acting_pace=acting_pace))
         self._init_net(encoded_dim, encoded_dim, horizon * action_dim)
 
     def forward(self, state_n: torch.Tensor) -> torch.Tensor:
@@ -179,13 +206,16 @@ class FlowPolicy(_ChunkPolicy):
         steering_dims: Sequence[int] | None = None,
         selector_dims: Sequence[int] | None = None,
         selector_candidates: int = 16,
+        prev_state: bool = False,
+        pace_input: bool = False,
+        acting_pace: Sequence[float] | None = None,
     ) -> None:
         super().__init__()
         encoded_dim = self._init_common(check_architecture(
             hidden_dims, dropout, horizon, action_dim, state_dim, angle_encoding=angle_encoding, state_skip=state_skip,
             time_embedding=time_embedding, time_embedding_dim=time_embedding_dim, action_frame=action_frame,
             noise_scale=noise_scale, steering_dims=steering_dims, selector_dims=selector_dims,
-            selector_candidates=selector_candidates))
+            selector_candidates=selector_candidates, prev_state=prev_state, pace_input=pace_input, acting_pace=acting_pace))
         # Sampling only (training draws x0 ~ N(0, I)): starting closer to the mean trades diversity
         # for precision, chosen by rollouts on non-held-out seeds (models/README.md).
         self.noise_scale = self._arch["noise_scale"]
@@ -266,9 +296,10 @@ class FlowPolicy(_ChunkPolicy):
             x = x + dt * self(state_n, x, t)
         return x
 
-    def act_from_start(self, state: torch.Tensor, x0: torch.Tensor, num_steps: int = DEFAULT_NUM_STEPS) -> torch.Tensor:
+    def act_from_start(self, state: torch.Tensor, x0: torch.Tensor, num_steps: int = DEFAULT_NUM_STEPS,
+                       prev_state: torch.Tensor | None = None) -> torch.Tensor:
         """Clipped env-unit actions [B, H, A] integrated from a given Euler start x0 (fine-tuning acts this way)."""
-        chunk_n = self.integrate(self.normalizer.state(state), x0, num_steps)
+        chunk_n = self.integrate(self.policy_state(state, prev_state), x0, num_steps)
         return torch.clamp(self.normalizer.actions(state, chunk_n), ACTION_LOW, ACTION_HIGH)
 
 
@@ -282,6 +313,7 @@ class ActingPolicy(nn.Module):
         self.kind = policy.kind
         self.num_steps = num_steps
 
-    def forward(self, state: torch.Tensor, noise: torch.Tensor | None = None, num_steps: int | None = None) -> torch.Tensor:
+    def forward(self, state: torch.Tensor, noise: torch.Tensor | None = None, num_steps: int | None = None,
+                prev_state: torch.Tensor | None = None) -> torch.Tensor:
         """Actions [B, H, A] in env units, clipped to [0, 512]. MSE ignores `noise`; flow draws it if None."""
-        return self.policy.act(state, noise, self.num_steps if num_steps is None else num_steps)
+        return self.policy.act(state, noise, self.num_steps if num_steps is None else num_steps, prev_state)

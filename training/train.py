@@ -124,7 +124,8 @@ def train(cfg: TrainConfig) -> Run:
             for group in optimizer.param_groups:
                 group["lr"] = lr
             noise_std = state_noise_std(cfg, progress)
-            loss = model(data.states[idx], data.chunks[idx], noise_std)  # env units: the policy normalizes
+            paces = None if data.paces is None else data.paces[idx]
+            loss = model(data.states[idx], data.chunks[idx], noise_std, data.prev_states[idx], paces)  # env units: the policy normalizes
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -208,7 +209,8 @@ def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
 
     extra = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
     data = training_set(cfg.data, cfg.horizon, cfg.pad_episode_end, extra, human_weight=cfg.human_weight,
-                        policy_step_weight=cfg.policy_step_weight, extra_stride=cfg.extra_stride, pace=cfg.pace())
+                        policy_step_weight=cfg.policy_step_weight, extra_stride=cfg.extra_stride, pace=cfg.pace(),
+                        pace_copies=cfg.pace_copies, seed=cfg.seed)
     if len(data) < cfg.batch_size:
         raise ValueError(f"{cfg.data} has {len(data)} windows, fewer than batch_size {cfg.batch_size}")
     if cfg.init:
@@ -224,6 +226,8 @@ def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
             raise ValueError(f"--arch horizon {overrides['horizon']} differs from --horizon {cfg.horizon}: give it once")
         policy = build_policy(cfg.policy, **{"dropout": cfg.dropout, "horizon": cfg.horizon, **overrides})
         policy.normalizer.set(data.statistics(policy.action_frame))
+    if bool(cfg.pace_copies) != policy.pace_input:
+        raise ValueError("a policy with a pace input trains with --pace-copies K > 0, and only such a policy does")
     return policy, data
 
 
@@ -264,8 +268,9 @@ class _LossModule(nn.Module):
         super().__init__()
         self.policy = policy
 
-    def forward(self, state: torch.Tensor, chunk: torch.Tensor, state_noise: float = 0.0) -> torch.Tensor:
-        return self.policy.compute_loss(state, chunk, state_noise)
+    def forward(self, state: torch.Tensor, chunk: torch.Tensor, state_noise: float = 0.0,
+                prev_state: torch.Tensor | None = None, pace: torch.Tensor | None = None) -> torch.Tensor:
+        return self.policy.compute_loss(state, chunk, state_noise, prev_state=prev_state, pace=pace)
 
 
 def _evaluate(policy: nn.Module, cfg: TrainConfig, step: int) -> dict[str, Any]:
