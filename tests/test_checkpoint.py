@@ -18,6 +18,7 @@ from training.checkpoint import (
     load_card,
     load_checkpoint,
     save_checkpoint,
+    set_acting_pace,
     set_noise_scale,
     update_card,
 )
@@ -134,6 +135,19 @@ def test_set_noise_scale_changes_sampling_only(tmp_path: Path) -> None:
     mse_stem, _ = _save(tmp_path, "mse")
     with pytest.raises(ValueError, match="flow"):
         set_noise_scale(mse_stem, 0.7)
+
+
+def test_set_acting_pace_needs_a_pace_input_and_a_valid_rule(tmp_path: Path) -> None:
+    stem, _ = _save(tmp_path, "flow")
+    with pytest.raises(ValueError, match="pace input"):
+        set_acting_pace(stem, [2.0, 1.0, 2.0, 0.0])
+    paced = tmp_path / "paced"
+    save_checkpoint(paced, FlowPolicy(pace_input=True), NORMALIZATION)
+    assert set_acting_pace(paced, [2.0, 1.0, 2.0, 0.0])["architecture"]["acting_pace"] == [2.0, 1.0, 2.0, 0.0]
+    assert load_checkpoint(paced)[0].acting_pace.far == 2.0
+    with pytest.raises(ValueError, match="pace far must be in"):
+        set_acting_pace(paced, [9.0, 1.0, 2.0, 0.0])
+    assert load_card(paced)["architecture"]["acting_pace"] == [2.0, 1.0, 2.0, 0.0]  # unchanged by the refused value
 
 
 def test_git_commit_outside_a_repo(tmp_path: Path) -> None:

@@ -143,14 +143,27 @@ def update_card(stem: str | Path, **fields: Any) -> dict[str, Any]:
 
 def set_noise_scale(stem: str | Path, noise_scale: float) -> dict[str, Any]:
     """Set a flow checkpoint's sampling `noise_scale` (in its architecture; the weights do not change); returns the card."""
+    return _set_acting_key(stem, "noise_scale", float(noise_scale), 1.0)
+
+
+def set_acting_pace(stem: str | Path, rule: list[float]) -> dict[str, Any]:
+    """Set the `acting_pace` rule [far, near, radius, ramp] (training.pace) of a flow with a pace input; returns the card."""
+    card = load_card(checkpoint_stem(stem))
+    if not card["architecture"].get("pace_input"):
+        raise ValueError(f"{checkpoint_stem(stem).with_suffix(CARD_SUFFIX)}: acting_pace applies to policies with a pace input")
+    return _set_acting_key(stem, "acting_pace", [float(v) for v in rule], None)
+
+
+def _set_acting_key(stem: str | Path, key: str, value: Any, default: Any) -> dict[str, Any]:
+    """Set how a flow checkpoint acts (an architecture key the weights do not depend on), validated; returns the card."""
     stem = checkpoint_stem(stem)
     card = load_card(stem)
     path = stem.with_suffix(CARD_SUFFIX)
     if card["kind"] != "flow":
-        raise ValueError(f"{path}: noise_scale applies to flow policies, this card is {card['kind']}")
-    architecture = {k: v for k, v in card["architecture"].items() if k != "noise_scale"}
-    if float(noise_scale) != 1.0:
-        architecture["noise_scale"] = float(noise_scale)
+        raise ValueError(f"{path}: {key} applies to flow policies, this card is {card['kind']}")
+    architecture = {k: v for k, v in card["architecture"].items() if k != key}
+    if value != default:
+        architecture[key] = value
     card["architecture"] = build_policy("flow", **architecture).architecture  # validates the value
     return _rewrite_card(stem, card)
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from pusht.spec import HELD_OUT_SEED
-from training.checkpoint import CheckpointError, load_card, set_noise_scale, update_card, write_text_atomic
+from training.checkpoint import CheckpointError, load_card, set_acting_pace, set_noise_scale, update_card, write_text_atomic
 from training.config import HelpFormatter, command_line
 from training.evaluate import ENVS, evaluate_policy, load_model, report, write_gif
 from training.export import export_onnx
@@ -44,12 +44,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="first held-out episode seed")
     parser.add_argument("--envs", nargs="+", choices=ENVS, default=list(ENVS), help="envs to score in")
     parser.add_argument("--noise-scale", type=float, default=None, help="flow: set the sampling noise_scale of the run's final and best checkpoints first (chosen on non-held-out seeds)")
+    parser.add_argument("--acting-pace", type=float, nargs=4, default=None, metavar=("FAR", "NEAR", "RADIUS", "RAMP"),
+                        help="flow with a pace input: set the pace it acts at by goal distance (training.pace), like --noise-scale")
     parser.add_argument("--note", default="", help="what changed from the published recipe and why (stored in the card)")
     parser.add_argument("--force", action="store_true", help="replace MODELS_DIR/NAME even if it scores better on the held-out seeds")
     args = parser.parse_args(argv)
     try:
         lines = ship(Path(args.run), args.name, Path(args.models_dir), args.episodes, args.seed, args.envs, args.note,
-                     args.noise_scale, Path(args.records_dir), args.force)
+                     args.noise_scale, Path(args.records_dir), args.force, args.acting_pace)
         for line in lines:
             print(json.dumps(line))
     except (ValueError, FileNotFoundError) as exc:
@@ -69,16 +71,19 @@ def ship(
     noise_scale: float | None = None,
     records_dir: Path = Path("records"),
     force: bool = False,
+    acting_pace: list[float] | None = None,
 ) -> list[dict[str, Any]]:
     """Record `run` in `records_dir`, ship its final checkpoint as `models_dir/name` if named; returns the reports.
 
-    `noise_scale` (flow) is first set on the run's final and best checkpoints, so every score and export uses it.
+    `noise_scale` and `acting_pace` (flow) are first set on the run's final and best checkpoints, so every score and export uses them.
     """
     check_finished(run)
     has_best = (run / "best.json").is_file()
-    if noise_scale is not None:
-        for checkpoint in ("last", "best") if has_best else ("last",):
+    for checkpoint in ("last", "best") if has_best else ("last",):
+        if noise_scale is not None:
             set_noise_scale(run / checkpoint, noise_scale)
+        if acting_pace is not None:
+            set_acting_pace(run / checkpoint, acting_pace)
     record = records_dir / run.name
     extra = {"recipe_changes": note} if note else {}
     reports: list[dict[str, Any]] = []
@@ -169,6 +174,9 @@ def reproduce_commands(card: dict[str, Any], run: Path, name: str) -> list[str]:
     scale = card["architecture"].get("noise_scale")
     if scale is not None:
         ship_command += f" --noise-scale {scale:g}"
+    rule = card["architecture"].get("acting_pace")
+    if rule is not None:
+        ship_command += " --acting-pace " + " ".join(f"{v:g}" for v in rule)
     return [command_line(card["config"]), ship_command]
 
 
