@@ -4,6 +4,7 @@
     python scripts/pace_diagnostics.py gate --far runs/flow-speed2.0-padend-150k/last.onnx --far-noise-scale 0.3 \
         --near models/flow.onnx --radius 2.0
     python scripts/pace_diagnostics.py phases --model models/flow.onnx --max-steps 900
+    python scripts/pace_diagnostics.py acting-pace --model runs/flow-paceinput2.5-padend-150k/last --rule 2 1 2 0 --noise-scale 0.3
 
 `resample` plays each chunk `speed` times as fast (linear interpolation between its actions) and so
 executes only floor(11 / speed) + 1 actions of it before asking again; `gate` takes, per row, the far
@@ -11,7 +12,9 @@ flow's chunk when the block is at least `radius` goal units from the goal (train
 flow's otherwise, all 12 actions executed. Neither is a shippable policy (the first breaks the
 12-actions-open-loop rule, the second runs two networks); they measure what pace is worth. `phases`
 plays one flow as served and reports where its episodes spend their steps: the median step at which
-the block first covers 0.3 and 0.9 of the goal, and of success. Prints one JSON line, with the scores
+the block first covers 0.3 and 0.9 of the goal, and of success. `acting-pace` plays a flow with a pace
+input as served, at another acting rule (a copy of the checkpoint with that rule and start-noise scale,
+exported to ONNX in a temporary folder: what `training.ship --acting-pace` would ship). Prints one JSON line, with the scores
 as training.evaluate prints them. Tuning seeds only (default 300000).
 """
 
@@ -47,12 +50,18 @@ def main(argv: list[str] | None = None) -> int:
     phases.add_argument("--model", required=True, help="ONNX file or checkpoint stem")
     phases.add_argument("--noise-scale", type=float, default=1.0, help="start-noise multiplier on top of the card's")
     phases.add_argument("--max-steps", type=int, default=300, help="episode step limit")
-    for p in (resample, gate, phases):
+    paced = sub.add_parser("acting-pace", help="a flow with a pace input, as served at another acting rule", formatter_class=HelpFormatter)
+    paced.add_argument("--model", required=True, help="checkpoint stem of a flow with a pace input")
+    paced.add_argument("--rule", type=float, nargs=4, required=True, metavar=("FAR", "NEAR", "RADIUS", "RAMP"), help="the acting rule (training.pace)")
+    paced.add_argument("--noise-scale", type=float, default=1.0, help="the sampling noise_scale to set in the copy")
+    for p in (resample, gate, phases, paced):
         p.add_argument("--episodes", type=int, default=1000, help="episodes (seeds seed..seed+episodes-1)")
         p.add_argument("--seed", type=int, default=300000, help="first episode seed (use tuning seeds, never held-out ones)")
     args = parser.parse_args(argv)
     seeds = list(range(args.seed, args.seed + args.episodes))
-    if args.mode == "phases":
+    if args.mode == "acting-pace":
+        summary, extra = run_episodes(rollout_act(paced_copy(args.model, args.rule, args.noise_scale)), seeds, num_envs=100), {}
+    elif args.mode == "phases":
         summary = run_episodes(rollout_act(load_policy(args.model), args.noise_scale), seeds, num_envs=100, max_steps=args.max_steps,
                                record_trajectories=True)
         extra = phase_steps(summary)
@@ -78,6 +87,28 @@ def phase_steps(summary) -> dict:
             firsts["success"].append(episode.length)
     return {f"median_first_step_{k}": float(np.median(v)) if v else None for k, v in firsts.items()} | {
         f"episodes_reaching_{k}": len(v) for k, v in firsts.items()}
+
+
+def paced_copy(stem: str, rule: list[float], noise_scale: float):
+    """The ONNX policy of a copy of checkpoint `stem` acting at `rule` and `noise_scale`, in a temporary folder."""
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from training.checkpoint import checkpoint_stem, set_acting_pace, set_noise_scale
+    from training.export import export_onnx
+
+    source = checkpoint_stem(stem)
+    copy = Path(tempfile.mkdtemp(prefix="acting-pace-")) / "policy"
+    for suffix in (".safetensors", ".json"):
+        shutil.copyfile(source.with_suffix(suffix), copy.with_suffix(suffix))
+    try:
+        set_acting_pace(copy, rule)
+        set_noise_scale(copy, noise_scale)
+        export_onnx(copy)
+        return load_policy(copy.with_suffix(".onnx"))  # ONNX Runtime holds the graph in memory: the copy can go
+    finally:
+        shutil.rmtree(copy.parent)
 
 
 def resampled(args: argparse.Namespace):

@@ -47,6 +47,29 @@ def test_phases_count_the_steps_to_each_coverage(evaluated):
         assert result["median_first_step_0.3"] <= result["median_first_step_0.9"] <= result["median_first_step_success"]
 
 
+def test_acting_pace_plays_the_copy_as_its_own_export_would(tmp_path):
+    import torch
+
+    from training.checkpoint import save_checkpoint
+    from training.data import load_replay
+    from training.export import export_onnx
+    from training.normalization import Normalizer
+    from training.policies import build_policy
+
+    replay = load_replay()
+    torch.manual_seed(0)
+    stem = tmp_path / "paced"
+    policy = build_policy("flow", pace_input=True, acting_pace=[2.0, 1.0, 2.0, 0.0], noise_scale=0.3)
+    save_checkpoint(stem, policy, Normalizer.fit(replay.states, replay.actions).to_dict())
+    export_onnx(stem)
+    done = subprocess.run([sys.executable, "-m", "training.evaluate", "--model", str(stem.with_suffix(".onnx")), "--episodes", "4",
+                           "--seed", "300000", "--no-progress"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    served = json.loads(done.stdout)
+    copy = _run("acting-pace", "--model", str(stem), "--rule", "2", "1", "2", "0", "--noise-scale", "0.3")
+    assert {k: copy[k] for k in ("mean_max_reward", "mean_length")} == {k: served[k] for k in ("mean_max_reward", "mean_length")}
+    assert json.loads(stem.with_suffix(".json").read_text())["architecture"]["acting_pace"] == [2.0, 1.0, 2.0, 0.0]  # the source is untouched
+
+
 def test_help():
     done = subprocess.run([*SCRIPT, "gate", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and "--radius" in done.stdout and "(default: 2.0)" in done.stdout
