@@ -62,6 +62,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 max_rows=settings.batch_max_rows,
                 max_cost=settings.batch_max_cost,
                 max_wait_s=settings.batch_max_wait_ms / 1000.0,
+                inline_max_cost=settings.inline_max_cost,
                 # 32 concurrent connections, each with a full request, must never be shed.
                 queue_limit=max(settings.queue_limit, NEVER_SHED_CONNECTIONS * settings.max_states * policy.network_evaluations()),
                 observe=metrics.observe_batch,

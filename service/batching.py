@@ -12,7 +12,8 @@ the policy's own chunk shape (its card's horizon and action width), and the call
 `acting.Policy.act`, which pads it to a multiple of 4 rows (`pusht.seeding.pad_rows`), so an answer
 never depends, to the last bit, on what else was in the batch. Requests whose client left (their future
 is done) are dropped before their rows reach the model. Compute runs in the worker thread (ONNX
-Runtime and torch release the GIL), off the event loop.
+Runtime and torch release the GIL), off the event loop, except a lone small request with nothing else
+queued (`inline_max_cost`): handing it to a thread and back costs more than its model call.
 """
 
 from __future__ import annotations
@@ -68,10 +69,12 @@ class Batcher:
         queue_limit: int = 8192,
         observe: BatchObserver | None = None,
         max_cost: int = 640,
+        inline_max_cost: int = 0,
     ) -> None:
         self.policy = policy
         self.max_rows = max_rows
         self.max_cost = max_cost
+        self.inline_max_cost = inline_max_cost
         self.max_wait_s = max_wait_s
         self.queue_limit = queue_limit
         self._observe = observe
@@ -177,8 +180,22 @@ class Batcher:
             return
         self._busy = True
         self._last_requests = len(batch)
+        if self._inline(batch):
+            try:
+                actions, error = self._compute(batch), None
+            except Exception as exc:  # delivered to the request like a worker thread's failure
+                actions, error = None, exc
+            self._deliver(loop, batch, actions, error)
+            return
         done = loop.run_in_executor(self._executor, self._compute, batch)
         done.add_done_callback(lambda fut: self._finish(loop, batch, fut))
+
+    def _inline(self, batch: list[_Slice]) -> bool:
+        """Whether to run this call on the event loop: one small request whole, nothing else waiting."""
+        if len(batch) != 1 or self._pending_rows:
+            return False
+        item, start, stop = batch[0]
+        return start == 0 and stop == len(item.states) and len(item.states) * item.unit <= self.inline_max_cost
 
     def _take_batch(self) -> list[_Slice]:
         """The next call's rows: the oldest request's num_steps, max-min fair shares of the call's budget."""
@@ -254,17 +271,21 @@ class Batcher:
         return self._rng.standard_normal((stop - start, horizon, action_dim), dtype=np.float32)
 
     def _finish(self, loop: asyncio.AbstractEventLoop, batch: list[_Slice], fut: asyncio.Future) -> None:
-        self._busy = False
         if fut.cancelled():
-            error: BaseException | None = asyncio.CancelledError()
+            self._deliver(loop, batch, None, asyncio.CancelledError())
         else:
             error = fut.exception()
+            self._deliver(loop, batch, fut.result() if error is None else None, error)
+
+    def _deliver(self, loop: asyncio.AbstractEventLoop, batch: list[_Slice], actions: np.ndarray | None,
+                 error: BaseException | None) -> None:
+        """Hand a call's actions (or its error) to its requests, then schedule the next call."""
+        self._busy = False
         if error is not None:
             for item, _, _ in batch:
                 if not item.future.done():
                     item.future.set_exception(error)
         else:
-            actions = fut.result()
             offset = 0
             for item, start, stop in batch:
                 part = actions[offset : offset + stop - start]

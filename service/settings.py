@@ -38,6 +38,13 @@ class Settings(BaseSettings):
             "bulk batches are split across calls so that small requests never wait behind a long one"
         ),
     )
+    inline_max_cost: int = Field(
+        64, ge=0,
+        description=(
+            "a lone request of at most this many cost units, with nothing else queued, runs on the event loop instead of "
+            "the policy's worker thread (the hop costs more than a small model call); 0: always the worker thread"
+        ),
+    )
     batch_max_wait_ms: float = Field(
         0.0, ge=0.0, le=100.0,
         description=(

@@ -105,6 +105,48 @@ def test_batcher_answers_in_order_and_passes_model_errors_on() -> None:
     assert isinstance(failed, RuntimeError) and "model call failed" in str(failed)
 
 
+def test_a_lone_small_request_runs_on_the_event_loop_and_the_rest_on_the_worker() -> None:
+    """With inline_max_cost, a lone request that small skips the thread hop; bigger or concurrent ones do not; errors pass on alike."""
+    import threading
+
+    from service.batching import Batcher
+
+    class Recording:
+        """Just the part of `acting.Policy` the batcher uses; notes the thread of every call."""
+
+        name, kind, horizon, action_dim = "recording", "mse", 12, 2
+        threads: list[str] = []
+
+        def network_evaluations(self, num_steps=None):
+            return 1
+
+        def act(self, states, prev_states=None, *, noise=None, num_steps=None):
+            self.threads.append(threading.current_thread().name)
+            if states[0, 0] < 0:
+                raise RuntimeError("model call failed")
+            return np.repeat(states[:, None, :2], 12, axis=1)
+
+    policy = Recording()
+
+    async def run() -> list:
+        batcher = Batcher(policy, inline_max_cost=4)
+        try:
+            lone = await batcher.submit(np.full((4, 5), 1.0, np.float32))
+            big = await batcher.submit(np.full((5, 5), 2.0, np.float32))
+            pair = await asyncio.gather(*(batcher.submit(np.full((1, 5), 3.0 + i, np.float32)) for i in range(2)))
+            failed = await asyncio.gather(batcher.submit(np.full((1, 5), -1.0, np.float32)), return_exceptions=True)
+            return [lone, big, *pair, *failed]
+        finally:
+            batcher.close()
+
+    lone, big, first, second, failed = asyncio.run(run())
+    assert lone[0, 0, 0] == 1.0 and big[0, 0, 0] == 2.0 and first[0, 0, 0] == 3.0 and second[0, 0, 0] == 4.0
+    assert isinstance(failed, RuntimeError) and "model call failed" in str(failed)
+    # 4 rows alone: inline; 5 rows: over the cost; the pair queued together: one merged call on the worker
+    on_worker = [name.startswith("policy-recording") for name in policy.threads]
+    assert policy.threads[0] == threading.main_thread().name and on_worker == [False, True, True, False]
+
+
 def test_batcher_sheds_load_beyond_its_queue_limit(test_models: Path) -> None:
     """Rows beyond queue_limit waiting at once are refused with Overloaded (-> 503); the rest are answered."""
     from acting import load_policy
