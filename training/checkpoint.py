@@ -141,6 +141,13 @@ def update_card(stem: str | Path, **fields: Any) -> dict[str, Any]:
     return _rewrite_card(stem, card)
 
 
+def require_state_only(card: dict[str, Any], source: str | Path, command: str) -> None:
+    """ValueError unless the card's policy acts from the state alone (no `prev_state` or pace input), which `command` needs."""
+    extra = [key for key in ("prev_state", "pace_input") if card["architecture"].get(key)]
+    if extra:
+        raise ValueError(f"{source}: the policy takes {' and '.join(extra)} beside the state, which {command} does not carry")
+
+
 def set_noise_scale(stem: str | Path, noise_scale: float) -> dict[str, Any]:
     """Set a flow checkpoint's sampling `noise_scale` (in its architecture; the weights do not change); returns the card."""
     return _set_acting_key(stem, "noise_scale", float(noise_scale), 1.0)

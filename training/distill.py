@@ -82,7 +82,7 @@ def distill(cfg: DistillConfig):
     """Draw the pairs, train the student, evaluate it, save `last`; returns the Run."""
     from tqdm import tqdm
 
-    from training.checkpoint import git_commit, load_checkpoint, save_checkpoint
+    from training.checkpoint import git_commit, load_checkpoint, require_state_only, save_checkpoint
     from training.curves import plot_learning_curve
     from training.data import load_replay
     from training.evaluate import evaluate_policy
@@ -94,6 +94,7 @@ def distill(cfg: DistillConfig):
     teacher, card = load_checkpoint(cfg.teacher)
     if card["kind"] != "flow":
         raise ValueError(f"{cfg.teacher} is a {card['kind']} checkpoint; only a flow has steps to distil")
+    require_state_only(card, cfg.teacher, "distillation")
     teacher.eval()
     student = build_policy("flow", **card["architecture"])
     student.load_state_dict(teacher.state_dict())

@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def finetune(cfg: FinetuneConfig):
     """Run (or resume) one fine-tuning as configured; returns its `training.run.Run` (folder in `.dir`)."""
-    from training.checkpoint import git_commit, load_checkpoint, save_checkpoint
+    from training.checkpoint import git_commit, load_checkpoint, require_state_only, save_checkpoint
     from training.evaluate import evaluate_policy
     from training.run import Run, RunStopped, pack_rng, unpack_rng
 
@@ -50,6 +50,7 @@ def finetune(cfg: FinetuneConfig):
     base, base_card = load_checkpoint(cfg.init)
     if base_card["kind"] != "flow":
         raise ValueError(f"{cfg.init} is a {base_card['kind']} checkpoint; noise-space fine-tuning needs a flow")
+    require_state_only(base_card, cfg.init, "noise-space fine-tuning")
     agent = NoiseAgent(base, base_card, cfg)
     generator = torch.Generator().manual_seed(cfg.seed)
     algorithm = ALGORITHMS[cfg.algo](agent, cfg, generator)

@@ -57,6 +57,8 @@ def collect(model: str, episodes: int, seed: int, candidates: int, num_envs: int
     policy = load_policy(model, threads=1)
     if policy.kind != "flow":
         raise ValueError(f"{model}: the lookahead teacher samples candidate chunks from a flow, not a {policy.kind} policy")
+    if policy.takes_prev_state:
+        raise ValueError(f"{model}: the policy takes prev_state, which the lookahead teacher does not carry")
     generator = torch.Generator().manual_seed(seed)
     scratch = PushTEnv(render_mode=None)
     scratch.reset(seed=0)
