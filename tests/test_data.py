@@ -113,11 +113,13 @@ def test_training_set_reproduces_every_recorded_run_s_statistics(card_path: Path
     config = card["config"]
     if config.get("init"):
         pytest.skip("fine-tuned runs keep their base's normalization")
-    data = training_set(REPO / config["data"], config["horizon"], bool(config.get("pad_episode_end")), pace=TrainConfig(**config).pace())
+    copies = config.get("pace_copies", 0)
+    data = training_set(REPO / config["data"], config["horizon"], bool(config.get("pad_episode_end")), pace=TrainConfig(**config).pace(),
+                        pace_copies=copies, seed=config["seed"])
     policy = build_policy(card["kind"], **card["architecture"])
     policy.normalizer.set(data.statistics(policy.action_frame))
     assert policy.normalizer.to_dict() == card["normalization"]
-    assert len(data) == data.demo_windows == (25650 if config.get("pad_episode_end") else 23384)
+    assert len(data) == data.demo_windows == max(1, copies) * (25650 if config.get("pad_episode_end") else 23384)
 
 
 @pytest.mark.parametrize("pad_end", [False, True])
