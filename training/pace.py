@@ -10,9 +10,11 @@ from the goal:
     pace     = far if distance >= radius else near                       (ramp 0)
     pace     = near + (far - near) * clip((distance - radius) / ramp, 0, 1)   (ramp > 0)
 
-It is a property of the training data only: the policy learns a pace per state, and its graph, inputs
-and outputs stay those of any flow. Measured so far (models/README.md, "Time, not skill"): with all 12
-actions of a chunk executed, flows trained at pace are not better than the shipped one.
+Used on the training data alone, the policy learns a pace per state, and its graph, inputs and outputs
+stay those of any flow. A policy with a pace input (`pace_input`) is trained at random paces instead and
+acts at the rule in its card (`acting_pace`, computed inside its graph by `Pace.speeds_t`). Measured so
+far (models/README.md, "Time, not skill"): with all 12 actions of a chunk executed, neither is better
+than the shipped flow.
 """
 
 from __future__ import annotations
