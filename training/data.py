@@ -203,9 +203,8 @@ def training_set(data: str | Path, horizon: int = DEFAULT_HORIZON, pad_end: bool
             raise ValueError("a pace input trains on the demonstrations alone; drop the extra data")
         frames = np.repeat(frames, pace_copies)
         paces = np.random.default_rng(seed).uniform(1.0, pace.fastest, len(frames))
-        states, chunks = replay.states[frames].copy(), chunks_at(replay, frames, paces, horizon, pad_end)
-    else:
-        states, chunks = make_windows(replay, horizon, pad_end, pace)
+    states = replay.states[frames].copy()
+    chunks = chunks_at(replay, frames, pace.speeds(states) if paces is None else paces, horizon, pad_end)  # make_windows' windows
     prev_states = previous_states(replay, frames)
     demo_windows = len(states)
     weights = [np.ones(demo_windows)]
