@@ -84,8 +84,14 @@ class Card:
         return self.path.parent / Path(file).name
 
     def network_evaluations(self, num_steps: int | None = None) -> int:
-        """Network evaluations per chunk: the flow step count, 1 for mse."""
-        return 1 if self.kind != "flow" else (num_steps or self.num_steps)
+        """Network evaluations per chunk: 1 for mse; a flow's step count, and with an outcome chooser over K candidates
+        K times that plus the K outcome-model passes."""
+        if self.kind != "flow":
+            return 1
+        steps = num_steps or self.num_steps
+        if self.architecture.get("outcome_dims") is None:
+            return steps
+        return int(self.architecture.get("outcome_candidates", 16)) * (steps + 1)
 
 
 def card_stem(path: str | Path) -> Path:

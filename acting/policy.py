@@ -72,8 +72,8 @@ class Policy:
         return None
 
     def network_evaluations(self, num_steps: int | None = None) -> int:
-        """Network evaluations per chunk: the flow step count, 1 for mse."""
-        return 1 if self.kind != "flow" else (num_steps or self.default_num_steps)
+        """Network evaluations per chunk (`Card.network_evaluations`)."""
+        return self.card.network_evaluations(num_steps or self.default_num_steps)
 
     def check_outputs(self) -> None:
         """One call on 8 fixed states: CardError naming the file on a wrong shape or a non-finite output (broken weights)."""

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
-    "EpisodeResult", "RolloutSummary", "Trajectory", "card_id", "check_output_path", "episode_records", "write_episode_records",
+    "EpisodeResult", "RolloutSummary", "Trajectory", "bootstrap_ci95", "card_id", "check_output_path", "episode_records", "write_episode_records",
 ]
 
 _BOOTSTRAP_RESAMPLES = 10_000
@@ -72,9 +72,9 @@ class RolloutSummary:
         return cls(
             episodes=list(episodes),
             mean_max_reward=float(max_rewards.mean()),
-            mean_max_reward_ci95=_bootstrap_ci95(max_rewards),
+            mean_max_reward_ci95=bootstrap_ci95(max_rewards),
             success_rate=float(successes.mean()),
-            success_rate_ci95=_bootstrap_ci95(successes),
+            success_rate_ci95=bootstrap_ci95(successes),
             mean_length=float(np.mean([e.length for e in episodes])),
             **kwargs,
         )
@@ -149,7 +149,8 @@ def check_output_path(flag: str, path: str | Path) -> Path:
     return path
 
 
-def _bootstrap_ci95(values: np.ndarray) -> tuple[float, float]:
+def bootstrap_ci95(values: np.ndarray) -> tuple[float, float]:
+    """The 95 % bootstrap interval of the mean of `values` (fixed RNG: the same values give the same interval)."""
     rng = np.random.default_rng(_BOOTSTRAP_SEED)
     idx = rng.integers(0, len(values), size=(_BOOTSTRAP_RESAMPLES, len(values)))
     means = values[idx].mean(axis=1)

@@ -133,7 +133,7 @@ class PolicyInfo(BaseModel):
     horizon: int = Field(description="actions per chunk: every answer of this policy is [horizon, action_dim] per state")
     action_dim: int = Field(description="numbers per action (the agent's target x, y)")
     num_steps: int | None = Field(None, description="flow Euler steps of the exported graph")
-    network_evaluations: int = Field(description="network passes per chunk at the default settings: flow's Euler steps, mse's 1")
+    network_evaluations: int = Field(description="network passes per chunk at the default settings: flow's Euler steps (times its candidates, plus their outcome-model passes, for a flow with an outcome chooser), mse's 1")
     steps: int | None = Field(None, description="training steps")
     evaluation: Any = Field(None, description="the card's evaluation results during training, with their seeds")
     heldout_evaluation: Any = Field(None, description="the card's scores on held-out episode seeds, when shipped")

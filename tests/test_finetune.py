@@ -124,15 +124,15 @@ def test_help_runs() -> None:
 def _tiny(tmp_path: Path, **overrides) -> FinetuneConfig:
     settings = dict(name="ft", out_dir=str(tmp_path), iterations=3, num_envs=8, rollout_decisions=3, eval_every=3, eval_episodes=4,
                     log_every=1, minibatch=12, batch_size=12, learning_starts=12, steering_dims="32", critic_dims="32",
-                    progress=False, lr=1e-2, label_envs=2, updates_per_decision=2)
+                    progress=False, lr=1e-2, label_envs=2, updates_per_decision=2, outcome_dims="32", candidates=4)
     return FinetuneConfig(**{**settings, **overrides})
 
 
-@pytest.mark.parametrize("algo, learned", [("ppo", "steering"), ("qselect", "selector")])
+@pytest.mark.parametrize("algo, learned", [("ppo", "steering"), ("qselect", "selector"), ("outcome", "outcome")])
 def test_a_short_real_run_saves_a_flow_that_exports_and_acts(tmp_path: Path, algo: str, learned: str) -> None:
     run = finetune(_tiny(tmp_path, algo=algo, label_candidates=4 if algo == "qselect" else 0)).dir
     card = load_card(run / "last")
-    key = "steering_dims" if algo == "ppo" else "selector_dims"
+    key = {"ppo": "steering_dims", "qselect": "selector_dims", "outcome": "outcome_dims"}[algo]
     assert card["architecture"][key] == [32] and card["finished"] and card["steps"] == 3
     assert card["evaluation"]["seeds"] == [400000, 400003] and card["reproduce"]["finetune"].startswith("python -m training.finetune")
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]

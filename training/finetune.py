@@ -1,14 +1,19 @@
-"""Fine-tune beyond imitation: PPO in a frozen flow's noise space (DSRL), on the env's reward.
+"""Fine-tune beyond imitation, the flow's weights frozen: choose its start noise (DSRL) or among its chunks.
 
     python -m training.finetune --init models/flow --name flow-dsrl
+    python -m training.finetune --algo outcome --name flow-outcome16 --iterations 160 ...   (models/README.md)
 
-A steering network (`training.steering`) picks the flow's start noise from the state; the flow's
+`--algo outcome` (`training.outcome_fit`) fits a one-chunk model of the block on simulated lookaheads
+of the flow's own candidate chunks; the served flow then plays the candidate it predicts closest to
+the goal. `--algo ppo` and `--algo qselect` learn in the noise space: with ppo,
+
+a steering network (`training.steering`) picks the start noise from the state. The flow's
 weights never change. One decision is one 12-action chunk executed open loop in `num_envs` envs
 (`training.chunk_env`), on training seeds disjoint from every evaluation and held-out range. Reward
 of a chunk: the change of the env's reward (coverage / 0.95, a potential, so the optimum is that of
 the success reward alone) plus `success_bonus` when the block lands; the episode then ends, so
 finishing early pays. Periodic evaluation uses `training.evaluate` on seeds 400000.. (never held out).
-Each checkpoint is a flow checkpoint with `steering_dims` in its architecture: export, ship, the
+Each checkpoint is a flow checkpoint (`steering_dims`, `selector_dims` or `outcome_dims` in its architecture): export, ship, the
 service and the client take it as they take any flow.
 """
 
@@ -23,6 +28,7 @@ import torch
 from training.chunk_env import ChunkVectorEnv
 from training.finetune_config import RESUMABLE_CHANGES, FinetuneConfig, parse_config
 from training.noise_rl import ALGORITHMS, NoiseAgent
+from training.outcome_fit import OutcomeFit
 
 __all__ = ["finetune", "main"]
 
@@ -53,7 +59,7 @@ def finetune(cfg: FinetuneConfig):
     require_state_only(base_card, cfg.init, "noise-space fine-tuning")
     agent = NoiseAgent(base, base_card, cfg)
     generator = torch.Generator().manual_seed(cfg.seed)
-    algorithm = ALGORITHMS[cfg.algo](agent, cfg, generator)
+    algorithm = {**ALGORITHMS, "outcome": OutcomeFit}[cfg.algo](agent, cfg, generator)
     run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite, may_change=RESUMABLE_CHANGES)
     card = {"name": "flow", "config": cfg.to_dict(), "git_commit": git_commit(), "init": str(cfg.init), "reproduce": {"finetune": cfg.command()}}
     first, episodes_before = 1, 0
@@ -148,7 +154,7 @@ def _plot(records: list[dict], path: Path) -> None:
         ax.fill_between(steps, [r["success_rate_ci95"][0] for r in evals], [r["success_rate_ci95"][1] for r in evals], alpha=0.2)
         ax.plot(steps, [r["mean_max_reward"] for r in evals], "o-", label="evaluation: mean max reward")
         first, last = evals[0]["seeds"]
-        ax.set_title(f"noise-space fine-tuning (evaluation: {evals[0]['episodes']} episodes, seeds {first}..{last})")
+        ax.set_title(f"fine-tuning (evaluation: {evals[0]['episodes']} episodes, seeds {first}..{last})")
     ax.set(xlabel="iteration", ylim=(0, 1.02))
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right")

@@ -16,14 +16,15 @@ from training.ppo import PPOSettings
 PROG = "python -m training.finetune"
 # fields that do not change what a run computes, so --resume accepts new values
 RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_every")
-ALGOS = ("ppo", "qselect")
+ALGOS = ("ppo", "qselect", "outcome")
 
 
 @dataclass
 class FinetuneConfig:
     """Everything that defines a fine-tuning run."""
 
-    algo: str = option("ppo", "ppo (a steering network, on-policy clipped surrogate) or qselect (a critic picks the best of --candidates starts)", choices=ALGOS)
+    algo: str = option("ppo", "ppo (a steering network, on-policy clipped surrogate), qselect (a critic picks the best of --candidates starts) "
+                       "or outcome (a learned one-chunk model of the block picks the best of --candidates chunks)", choices=ALGOS)
     init: str = option("models/flow", "flow checkpoint stem whose start noise is steered (its weights stay frozen)")
     name: str = option("flow-dsrl", "run name; outputs go to OUT_DIR/NAME")
     out_dir: str = option("runs", "parent folder of run folders")
@@ -33,7 +34,9 @@ class FinetuneConfig:
     steering_dims: str = option("256,256", "hidden widths of the steering MLP (comma-separated)")
     critic_dims: str = option("256,256", "hidden widths of the critic MLP (comma-separated)")
     lr: float = option(3e-4, "Adam learning rate of the steering")
-    critic_lr: float = option(1e-3, "Adam learning rate of the critic")
+    critic_lr: float = option(1e-3, "Adam learning rate of the critic (outcome: of the outcome model)")
+    outcome_dims: str = option("512,512,512,512", "outcome: hidden widths of the one-chunk outcome model (comma-separated)")
+    explore: float = option(0.2, "outcome: probability that an env plays a random candidate instead of the model's choice")
     gamma: float = option(0.99, "discount per decision (one chunk)")
     gae_lambda: float = option(0.95, "GAE lambda")
     clip: float = option(0.2, "PPO ratio clip")
@@ -41,13 +44,13 @@ class FinetuneConfig:
     minibatch: int = option(256, "PPO minibatch size")
     entropy_coef: float = option(0.0, "entropy bonus of the steering's Gaussian")
     success_bonus: float = option(1.0, "reward added when a chunk lands the block (coverage > 0.95)")
-    batch_size: int = option(256, "qselect: minibatch size")
-    buffer_size: int = option(1_000_000, "qselect: replay capacity (transitions)")
-    learning_starts: int = option(20_000, "qselect: played transitions before the critic chooses (plain flow sampling until then)")
-    updates_per_decision: int = option(16, "qselect: gradient updates after each decision step of all envs")
-    candidates: int = option(16, "qselect: candidate starts the critic chooses from at each decision")
+    batch_size: int = option(256, "qselect, outcome: minibatch size")
+    buffer_size: int = option(1_000_000, "qselect, outcome: replay capacity (transitions, labels)")
+    learning_starts: int = option(20_000, "qselect, outcome: played transitions (outcome: labels) before the learner chooses (plain flow sampling until then)")
+    updates_per_decision: int = option(16, "qselect, outcome: gradient updates after each decision step of all envs")
+    candidates: int = option(16, "qselect, outcome: candidates chosen from at each decision")
     label_candidates: int = option(0, "qselect: fresh starts simulated one chunk ahead from a visited state to label Q (0: off)")
-    label_envs: int = option(32, "qselect: envs whose state is labelled at each decision step")
+    label_envs: int = option(32, "qselect, outcome: envs whose state is labelled at each decision step")
     flow_num_steps: int = option(10, "Euler steps of the frozen flow")
     train_seed_start: int = option(10_000_000, "first training episode seed (episodes use consecutive seeds)")
     eval_every: int = option(50, "evaluate (and checkpoint) every N iterations (0: only at the end)")
@@ -81,8 +84,11 @@ class FinetuneConfig:
             raise ValueError(f"label_candidates must be >= 0, got {self.label_candidates}")
         if self.eval_every < 0 or self.train_seed_start < 0 or self.eval_seed < 0 or self.seed < 0:
             raise ValueError("eval_every, train_seed_start, eval_seed and seed must be >= 0")
+        if not 0 <= self.explore <= 1:
+            raise ValueError(f"explore must be in [0, 1], got {self.explore}")
         self.steering_dims_list()
         self.critic_dims_list()
+        self.outcome_dims_list()
 
     def steering_dims_list(self) -> list[int]:
         """`steering_dims` as a list of widths."""
@@ -91,6 +97,10 @@ class FinetuneConfig:
     def critic_dims_list(self) -> list[int]:
         """`critic_dims` as a list of widths."""
         return _widths("critic_dims", self.critic_dims)
+
+    def outcome_dims_list(self) -> list[int]:
+        """`outcome_dims` as a list of widths."""
+        return _widths("outcome_dims", self.outcome_dims)
 
     def ppo_settings(self) -> PPOSettings:
         """The PPO update's hyperparameters."""

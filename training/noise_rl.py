@@ -13,10 +13,10 @@ from training.chunk_env import ChunkVectorEnv
 from training.finetune_config import FinetuneConfig
 from training.ppo import Critic, Rollout, ppo_update
 
-__all__ = ["ALGORITHMS", "NoiseAgent"]
+__all__ = ["ALGORITHMS", "NoiseAgent", "Resumable"]
 
 
-class _Resumable:
+class Resumable:
     """What a resumable checkpoint of an adapter holds: its modules, optimizers and replays, by name."""
 
     def parts(self) -> tuple[dict, dict, dict]:
@@ -59,12 +59,14 @@ class NoiseAgent:
 
         if cfg.algo == "qselect":
             added = {"selector_dims": cfg.critic_dims_list(), "selector_candidates": cfg.candidates}
+        elif cfg.algo == "outcome":
+            added = {"outcome_dims": cfg.outcome_dims_list(), "outcome_candidates": cfg.candidates}
         else:
             added = {"steering_dims": cfg.steering_dims_list()}
         self.policy = build_policy("flow", **{**base_card["architecture"], **added})
         missing, unexpected = self.policy.load_state_dict(base.state_dict(), strict=False)
         self.policy.normalizer.set(base.normalizer)
-        if unexpected or any(not k.startswith(("steering.", "selector.")) for k in missing):
+        if unexpected or any(not k.startswith(("steering.", "selector.", "outcome.")) for k in missing):
             raise ValueError(f"{cfg.init}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
         # The flow stays frozen because only the steering is optimized: no loss reaches the flow (rollouts
         # run without grad), and leaving requires_grad alone keeps the card's parameter count whole.
@@ -107,7 +109,7 @@ def _chunk_reward(result, cfg: FinetuneConfig) -> torch.Tensor:
     return torch.as_tensor(result.reward_end - result.reward_start + cfg.success_bonus * result.success, dtype=torch.float32)
 
 
-class _PPO(_Resumable):
+class _PPO(Resumable):
     """On-policy: `rollout_decisions` chunks in every env, then clipped-surrogate epochs."""
 
     def __init__(self, agent: NoiseAgent, cfg: FinetuneConfig, generator: torch.Generator) -> None:
@@ -142,7 +144,7 @@ class _PPO(_Resumable):
                           self.cfg.ppo_settings(), self.generator)
 
 
-class _QSelect(_Resumable):
+class _QSelect(Resumable):
     """Approximate policy iteration in the noise space; acting picks the best of K candidate starts by Q.
 
     V(state, clock) regresses the Monte Carlo returns of recent episodes; Q(state, x0) regresses

@@ -206,6 +206,8 @@ class FlowPolicy(_ChunkPolicy):
         steering_dims: Sequence[int] | None = None,
         selector_dims: Sequence[int] | None = None,
         selector_candidates: int = 16,
+        outcome_dims: Sequence[int] | None = None,
+        outcome_candidates: int = 16,
         prev_state: bool = False,
         pace_input: bool = False,
         acting_pace: Sequence[float] | None = None,
@@ -215,7 +217,7 @@ class FlowPolicy(_ChunkPolicy):
             hidden_dims, dropout, horizon, action_dim, state_dim, angle_encoding=angle_encoding, state_skip=state_skip,
             time_embedding=time_embedding, time_embedding_dim=time_embedding_dim, action_frame=action_frame,
             noise_scale=noise_scale, steering_dims=steering_dims, selector_dims=selector_dims,
-            selector_candidates=selector_candidates, prev_state=prev_state, pace_input=pace_input, acting_pace=acting_pace))
+            selector_candidates=selector_candidates, outcome_dims=outcome_dims, outcome_candidates=outcome_candidates, prev_state=prev_state, pace_input=pace_input, acting_pace=acting_pace))
         # Sampling only (training draws x0 ~ N(0, I)): starting closer to the mean trades diversity
         # for precision, chosen by rollouts on non-held-out seeds (models/README.md).
         self.noise_scale = self._arch["noise_scale"]
@@ -241,6 +243,12 @@ class FlowPolicy(_ChunkPolicy):
             from training.selection import NoiseSelector
 
             self.selector = NoiseSelector(encoded_dim, (horizon, action_dim), self._arch["selector_dims"], self._arch["selector_candidates"])
+        # A learned one-chunk model of the block choosing among K integrated chunks (training.finetune --algo outcome).
+        self.outcome = None
+        if self._arch["outcome_dims"] is not None:
+            from training.outcome import OutcomeSelector
+
+            self.outcome = OutcomeSelector((horizon, action_dim), self._arch["outcome_dims"], self._arch["outcome_candidates"])
 
     def forward(self, state_n: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """Velocity [B, H, A] at noisy normalized chunks x_t [B, H, A] and times t [B] or [B, 1], given normalized states [B, S]."""
@@ -276,6 +284,8 @@ class FlowPolicy(_ChunkPolicy):
             noise = torch.randn(shape, generator=generator, device=state_n.device, dtype=state_n.dtype)
         elif tuple(noise.shape) != shape and not torch.jit.is_tracing() and not torch.compiler.is_compiling():
             raise ValueError(f"noise must have shape {list(shape)}, got {list(noise.shape)}")
+        if self.outcome is not None:
+            return self.outcome.best_chunk(self, state_n, noise, num_steps)
         return self.integrate(state_n, self.start_noise(state_n, noise), num_steps)
 
     def start_noise(self, state_n: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:

@@ -38,7 +38,7 @@ class NoiseSelector(nn.Module):
             layers += [nn.Linear(prev, width), nn.SiLU()]
             prev = width
         self.q = nn.Sequential(*layers, nn.Linear(prev, 1))
-        self.register_buffer("rotations", _orthogonal_maps(self.candidates, dim))
+        self.register_buffer("rotations", orthogonal_maps(self.candidates, dim))
 
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def value(self, encoded_state: torch.Tensor, x0: torch.Tensor) -> torch.Tensor:
@@ -60,7 +60,7 @@ class NoiseSelector(nn.Module):
         return torch.gather(cands, 1, index).squeeze(1)
 
 
-def _orthogonal_maps(k: int, dim: int) -> torch.Tensor:
+def orthogonal_maps(k: int, dim: int) -> torch.Tensor:
     """K orthogonal [dim, dim] matrices, the first the identity, the rest Haar-random from a fixed seed."""
     generator = torch.Generator().manual_seed(_ROTATION_SEED)
     maps = [torch.eye(dim)]

@@ -169,7 +169,9 @@ def write_record(run: Path, record: Path, final: dict[str, Any], best: dict[str,
 
 
 def reproduce_commands(card: dict[str, Any], run: Path, name: str) -> list[str]:
-    """The training command (from the run's config) and the ship command that made `models/NAME`."""
+    """The training (or fine-tuning) command that made the run and the ship command that made `models/NAME`."""
+    # a fine-tuned run's card carries its own command; its config is not a training.train config
+    made = (card.get("reproduce") or {}).get("finetune") if isinstance(card.get("reproduce"), dict) else None
     ship_command = f"python -m training.ship --run {run} --name {name}"
     scale = card["architecture"].get("noise_scale")
     if scale is not None:
@@ -177,7 +179,7 @@ def reproduce_commands(card: dict[str, Any], run: Path, name: str) -> list[str]:
     rule = card["architecture"].get("acting_pace")
     if rule is not None:
         ship_command += " --acting-pace " + " ".join(f"{v:g}" for v in rule)
-    return [command_line(card["config"]), ship_command]
+    return [made or command_line(card["config"]), ship_command]
 
 
 def score_heldout(model: Path, label: Path, episodes: int, seed: int, envs: list[str], reports: list[dict[str, Any]],

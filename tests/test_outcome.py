@@ -1,0 +1,147 @@
+"""The outcome chooser: its model learns real one-chunk lookaheads, it picks the chunk it predicts closest to the goal,
+and a flow choosing among one candidate is the plain flow."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pusht.geometry import GOAL_POSE, coverage
+from training.checkpoint import load_checkpoint
+from training.chunk_env import ChunkVectorEnv
+from training.outcome import OutcomeModel, OutcomeSelector, goal_corner_distance
+from training.policies import build_policy
+
+REPO = Path(__file__).resolve().parent.parent
+SHIPPED = REPO / "models" / "flow"
+
+
+def _chooser_from_shipped(candidates: int, dims=(32,)):
+    base, card = load_checkpoint(SHIPPED)
+    policy = build_policy("flow", **{**card["architecture"], "outcome_dims": list(dims), "outcome_candidates": candidates})
+    policy.load_state_dict(base.state_dict(), strict=False)
+    policy.normalizer.set(base.normalizer)
+    return base.eval(), policy.eval()
+
+
+def test_goal_corner_distance_is_zero_at_the_goal_and_grows_with_the_error() -> None:
+    gx, gy, ga = GOAL_POSE
+    poses = torch.tensor([[gx, gy, ga], [gx + 2, gy, ga], [gx + 8, gy, ga], [gx, gy, ga + 0.05], [gx, gy, ga + 0.2]], dtype=torch.float64)
+    d = goal_corner_distance(poses)
+    assert d[0] < 1e-12 and d[1] < d[2] and d[3] < d[4]
+    covered = [coverage(*p) for p in poses.tolist()]
+    assert covered[0] > covered[1] > covered[2] and covered[3] > covered[4]  # the same orders as coverage
+
+
+def test_an_untrained_model_with_a_zero_head_predicts_no_motion() -> None:
+    model = OutcomeModel(12, (16,))
+    torch.nn.init.zeros_(model.net[-1].weight)
+    torch.nn.init.zeros_(model.net[-1].bias)
+    state = torch.tensor([[100.0, 120.0, 300.0, 280.0, 1.3]])
+    end = model(state, torch.full((1, 12, 2), 200.0))
+    torch.testing.assert_close(end, state[:, 2:5])
+
+
+def test_the_model_learns_real_lookaheads_better_than_no_motion() -> None:
+    torch.manual_seed(0)
+    envs = ChunkVectorEnv(24, seed_start=10_000_000)
+    rng = np.random.default_rng(0)
+    states, chunks, ends = [], [], []
+    for i in range(24):  # targets around the block, so most chunks push it
+        cands = (envs.obs[i, 2:4] + rng.normal(0, 40, (8, 1, 2)) + rng.normal(0, 5, (8, 12, 2))).astype(np.float32)
+        ends.append(envs.lookahead(i, cands).next_obs)
+        states.append(np.repeat(envs.obs[i : i + 1], 8, axis=0))
+        chunks.append(cands)
+    state, chunk, end = (torch.as_tensor(np.concatenate(x), dtype=torch.float32) for x in (states, chunks, ends))
+    model = OutcomeModel(12, (128, 128))
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    for _ in range(300):
+        loss = model.loss(state, chunk, end)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        err = (model(state, chunk)[:, :2] - end[:, 2:4]).norm(dim=1).mean()
+    still = (state[:, 2:4] - end[:, 2:4]).norm(dim=1).mean()
+    assert still > 5 and err < 0.3 * still, (float(err), float(still))
+
+
+def test_the_chooser_picks_the_candidate_predicted_closest_to_the_goal() -> None:
+    selector = OutcomeSelector((12, 2), (16,), candidates=6)
+    state = torch.tensor([[200.0, 220.0, 260.0, 250.0, 0.9], [300.0, 300.0, 240.0, 270.0, 0.6]])
+    chunks = 256 + 60 * torch.randn(2, 6, 12, 2)
+    with torch.no_grad():
+        chosen = selector.choose(state, chunks)
+        poses = selector.model(state.repeat_interleave(6, 0), chunks.reshape(-1, 12, 2))
+    distance = goal_corner_distance(poses).reshape(2, 6)
+    want = torch.where(distance.min(dim=1).values < distance[:, 0] * (1 - 1e-3), distance.argmin(dim=1), 0)
+    assert torch.equal(chosen, want)
+    # chunks that leave the block where it is tie, and the flow's own sample (candidate 0) plays
+    still = torch.zeros(1, 6, 12, 2)
+    torch.nn.init.zeros_(selector.model.net[-1].weight)
+    torch.nn.init.zeros_(selector.model.net[-1].bias)
+    assert selector.choose(state[:1], still + torch.randn(1, 6, 12, 2)).item() == 0
+
+
+def test_a_flow_choosing_among_one_candidate_is_the_plain_flow() -> None:
+    base, one = _chooser_from_shipped(candidates=1)
+    states = torch.tensor([[150.0, 350.0, 240.0, 260.0, 0.5], [300.0, 100.0, 200.0, 300.0, 2.0]])
+    noise = torch.randn(2, 12, 2)
+    with torch.no_grad():
+        torch.testing.assert_close(one.act(states, noise), base.act(states, noise), atol=1e-4, rtol=0)
+
+
+def test_a_flow_with_candidates_plays_one_of_its_candidate_chunks() -> None:
+    _, policy = _chooser_from_shipped(candidates=5)
+    states = torch.tensor([[150.0, 350.0, 240.0, 260.0, 0.5], [300.0, 100.0, 200.0, 300.0, 2.0], [260.0, 250.0, 255.0, 258.0, math.pi / 4]])
+    noise = torch.randn(3, 12, 2)
+    with torch.no_grad():
+        acted = policy.act(states, noise)
+        _, actions = policy.outcome.candidate_chunks(policy, policy.policy_state(states), noise, 10)
+        index = policy.outcome.choose(states, actions)
+    torch.testing.assert_close(acted, actions[torch.arange(3), index], atol=1e-4, rtol=0)
+    assert not torch.allclose(actions[:, 0], actions[:, 1])  # the candidates differ
+
+
+@pytest.mark.parametrize("args", [["smoothness", "--states", "4"], ["best-of", "--episodes", "2", "--candidates", "2", "--criterion", "keypoints"],
+                                  ["local", "--episodes", "2", "--where", "gate", "--iterations", "1", "--population", "2"]])
+def test_finish_diagnostics_run_and_report(args: list[str]) -> None:
+    done = subprocess.run([sys.executable, "scripts/finish_diagnostics.py", *args], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert result["mode"] == args[0]
+    if args[0] == "smoothness":
+        assert result["states"] == 4 and -1 <= result["shift_0.1px"]["correlation"] <= 1
+    else:
+        assert result["seeds"] == [300000, 300001] and 0 <= result["success_rate"] <= 1
+
+
+def test_outcome_keys_are_validated() -> None:
+    with pytest.raises(ValueError, match="outcome_dims"):
+        build_policy("flow", outcome_dims=[0])
+    with pytest.raises(ValueError, match="outcome_candidates"):
+        build_policy("flow", outcome_dims=[8], outcome_candidates=0)
+    with pytest.raises(ValueError, match="one of steering_dims, selector_dims and outcome_dims"):
+        build_policy("flow", outcome_dims=[8], steering_dims=[8])
+    assert "outcome_dims" not in build_policy("flow").architecture  # cards of plain flows are unchanged
+
+
+def test_a_chooser_counts_every_candidate_pass(tmp_path: Path) -> None:
+    from acting.card import Card
+    from training.ship import reproduce_commands
+
+    arch = {"hidden_dims": [8], "horizon": 12, "outcome_dims": [8], "outcome_candidates": 16}
+    card = Card(tmp_path / "c.json", {"name": "c", "kind": "flow", "architecture": arch, "onnx": None})
+    assert card.network_evaluations() == 16 * 11 and card.network_evaluations(2) == 16 * 3
+    plain = Card(tmp_path / "p.json", {"name": "p", "kind": "flow", "architecture": {"hidden_dims": [8]}, "onnx": None})
+    assert plain.network_evaluations() == 10
+    # a fine-tuned run ships with its own command, not a training.train one
+    tuned = {"architecture": arch, "config": {"algo": "outcome"}, "reproduce": {"finetune": "python -m training.finetune --algo outcome"}}
+    assert reproduce_commands(tuned, Path("runs/x"), "flow")[0] == "python -m training.finetune --algo outcome"
