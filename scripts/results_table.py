@@ -71,7 +71,7 @@ def _changes(card: dict) -> str:
     config = card.get("config", {})
     parts = [f"{k}={v}" for k, v in arch.items() if not (k == "dropout" and v == 0.1)]
     noise = (config.get("state_noise_start"), config.get("state_noise_end"), config.get("state_noise_schedule"))
-    if noise != (0.05, 0.05, "constant"):
+    if "state_noise_start" in config and noise != (0.05, 0.05, "constant"):
         parts.append(f"state noise {noise[0]}->{noise[1]} {noise[2]}")
     if config.get("pad_episode_end"):
         parts.append("end-padded windows")

@@ -24,7 +24,7 @@ from training.policies import ActingPolicy, build_policy
 from training.ppo import Rollout, gae
 
 REPO = Path(__file__).resolve().parent.parent
-SHIPPED = REPO / "models" / "flow"
+SHIPPED = REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"  # the plain flow that fine-tuning starts from
 
 
 def _steered_from_shipped(steering_dims=(32, 32)):
@@ -112,7 +112,7 @@ def test_config_is_validated_and_reproducible() -> None:
     with pytest.raises(SystemExit):
         parse_config(["--algo", "dqn"])
     cfg = FinetuneConfig(iterations=7, name="x", algo="qselect")
-    assert cfg.command() == "python -m training.finetune --algo qselect --init models/flow --name x --iterations 7"
+    assert cfg.command() == "python -m training.finetune --algo qselect --init records/flow-agentframe-padend-150k-noise0.3/last --name x --iterations 7"
     assert parse_config(cfg.command().split()[3:]) == cfg
 
 

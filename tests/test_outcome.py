@@ -20,7 +20,7 @@ from training.outcome import OutcomeModel, OutcomeSelector, goal_corner_distance
 from training.policies import build_policy
 
 REPO = Path(__file__).resolve().parent.parent
-SHIPPED = REPO / "models" / "flow"
+SHIPPED = REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"  # the plain flow inside models/flow
 
 
 def _chooser_from_shipped(candidates: int, dims=(32,)):
@@ -145,3 +145,11 @@ def test_a_chooser_counts_every_candidate_pass(tmp_path: Path) -> None:
     # a fine-tuned run ships with its own command, not a training.train one
     tuned = {"architecture": arch, "config": {"algo": "outcome"}, "reproduce": {"finetune": "python -m training.finetune --algo outcome"}}
     assert reproduce_commands(tuned, Path("runs/x"), "flow")[0] == "python -m training.finetune --algo outcome"
+
+
+def test_fine_tuning_a_fine_tuned_flow_is_refused(tmp_path: Path) -> None:
+    from training.finetune import finetune
+    from training.finetune_config import FinetuneConfig
+
+    with pytest.raises(ValueError, match="fine-tuned already"):
+        finetune(FinetuneConfig(algo="outcome", init="models/flow", name="again", out_dir=str(tmp_path), progress=False))

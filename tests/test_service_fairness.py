@@ -165,4 +165,7 @@ def test_torch_queue_limit_counts_num_steps() -> None:
         statuses = [status for status, _ in costly]
         assert 503 in statuses and 200 in statuses, statuses
         refused = json.loads(next(body for status, body in costly if status == 503))["detail"]
-        assert "cost units" in refused and "100 here" in refused
+        from acting import read_card
+
+        unit = read_card(_shipped() / "flow.json").network_evaluations(100)  # 100 steps, times the candidates of a chooser
+        assert "cost units" in refused and f"{unit} here" in refused

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from pusht.rollout import chunk_noise, row_noise
+from service.settings import Settings
 from tests.service_fixtures import UvicornProcess, iter_lines, raw_burst
 
 rng = np.random.default_rng(3)
@@ -67,7 +68,11 @@ def test_requests_with_seeds_still_merge_into_shared_model_calls(server: Uvicorn
         return values.get("pusht_batch_requests_count", 0.0), values.get("pusht_batch_requests_sum", 0.0)
 
     n = 64
-    bodies = [{"policy": "flow", "states": [STATES[i % 6], STATES[(i + 1) % 6]], "seeds": [1000 + i, 2000 + i]} for i in range(n)]
+    # two rows a request, unless two such requests overflow one call's cost budget (the shipped flow's 16 candidates)
+    unit = next(p for p in httpx.get(f"{server.url}/policies").json()["policies"] if p["name"] == "flow")["network_evaluations"]
+    rows = 2 if 2 * 2 * unit <= Settings().batch_max_cost else 1
+    bodies = [{"policy": "flow", "states": [STATES[(i + r) % 6] for r in range(rows)], "seeds": [1000 * (r + 1) + i for r in range(rows)]}
+              for i in range(n)]
     alone = [act(server.url, **body).json()["actions"] for body in bodies]
     calls0, reqs0 = calls_and_requests()
     together = asyncio.run(raw_burst(server.port, [json.dumps(b).encode() for b in bodies], connections=32))

@@ -196,4 +196,9 @@ def test_num_steps_where_the_sampler_has_none_gets_a_422_and_policies_say_the_co
         assert resp.status_code == 422 and "no sampler steps" in resp.text
         policies = {p["name"]: p for p in client.get("/policies").json()["policies"]}
     assert policies["mse"]["network_evaluations"] == 1
-    assert policies["flow"]["network_evaluations"] == policies["flow"]["num_steps"] == 10
+    from acting import read_card
+
+    arch = read_card(server.models_dir / "flow.json").architecture
+    candidates = arch.get("outcome_candidates", 16) if arch.get("outcome_dims") else 1  # the shipped flow chooses among 16
+    assert policies["flow"]["num_steps"] == 10
+    assert policies["flow"]["network_evaluations"] == (10 if candidates == 1 else candidates * 11)

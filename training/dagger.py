@@ -86,7 +86,7 @@ def dagger_round(args: argparse.Namespace) -> dict[str, Any]:
     stem = card_stem(args.model)
     card = read_card(stem).data
     stores, counts = correction_stores(args.corrections)
-    base_config = card.get("config") or {}
+    base_config = _training_config(card)
     recipe = {k: base_config[k] for k in RECIPE_KEYS if k in base_config}
     if args.data is not None:
         recipe["data"] = args.data
@@ -109,6 +109,16 @@ def dagger_round(args: argparse.Namespace) -> dict[str, Any]:
         "before": before, "after": after,
         "change": {k: round(after[k] - before[k], 6) for k in ("mean_max_reward", "success_rate")},
     }
+
+
+def _training_config(card: dict[str, Any]) -> dict[str, Any]:
+    """The training config behind a card: a fine-tuned flow's (`training.finetune`, frozen weights) is its base's."""
+    config = card.get("config") or {}
+    for _ in range(4):
+        if "algo" not in config or not config.get("init"):
+            break
+        config = read_card(card_stem(config["init"])).data.get("config") or {}
+    return config
 
 
 def _score(stem: Path, args: argparse.Namespace) -> dict[str, Any]:

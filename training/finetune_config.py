@@ -17,6 +17,8 @@ PROG = "python -m training.finetune"
 # fields that do not change what a run computes, so --resume accepts new values
 RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_every")
 ALGOS = ("ppo", "qselect", "outcome")
+# The imitation flow that models/flow chooses among the chunks of: the same weights, as a plain flow checkpoint.
+IMITATION_FLOW = "records/flow-agentframe-padend-150k-noise0.3/last"
 
 
 @dataclass
@@ -25,7 +27,7 @@ class FinetuneConfig:
 
     algo: str = option("ppo", "ppo (a steering network, on-policy clipped surrogate), qselect (a critic picks the best of --candidates starts) "
                        "or outcome (a learned one-chunk model of the block picks the best of --candidates chunks)", choices=ALGOS)
-    init: str = option("models/flow", "flow checkpoint stem whose start noise is steered (its weights stay frozen)")
+    init: str = option(IMITATION_FLOW, "plain flow checkpoint stem to fine-tune (its weights stay frozen; default: the imitation flow inside the shipped one)")
     name: str = option("flow-dsrl", "run name; outputs go to OUT_DIR/NAME")
     out_dir: str = option("runs", "parent folder of run folders")
     iterations: int = option(1000, "PPO iterations (each: rollout_decisions chunks in every env, then the update)")

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from training.chunk_env import ChunkVectorEnv
-from training.finetune_config import FinetuneConfig
+from training.finetune_config import IMITATION_FLOW, FinetuneConfig
 from training.ppo import Critic, Rollout, ppo_update
 
 __all__ = ["ALGORITHMS", "NoiseAgent", "Resumable"]
@@ -57,6 +57,10 @@ class NoiseAgent:
     def __init__(self, base: torch.nn.Module, base_card: dict, cfg: FinetuneConfig) -> None:
         from training.policies import ActingPolicy, build_policy
 
+        learned = [key for key in ("steering_dims", "selector_dims", "outcome_dims") if base_card["architecture"].get(key) is not None]
+        if learned:
+            raise ValueError(f"{cfg.init}: this flow was fine-tuned already ({learned[0]} in its architecture); fine-tune a plain flow "
+                             f"(--init {IMITATION_FLOW} is the one inside models/flow)")
         if cfg.algo == "qselect":
             added = {"selector_dims": cfg.critic_dims_list(), "selector_candidates": cfg.candidates}
         elif cfg.algo == "outcome":
