@@ -93,7 +93,8 @@ def test_browser_plays_the_episode_training_evaluate_scores(server, driver):
           if (d[i] === 0x77 && d[i + 1] === 0x88 && d[i + 2] === 0x99) grey++;
         }
         return [green, grey];""")
-    assert counts[1] > 5000 and counts[0] + counts[1] > 6000
+    # the tee covers 6,300 px; a block that landed hides most of the goal under it (edges are anti-aliased)
+    assert counts[1] > 5000 and counts[0] + counts[1] > 5500 + 1000 * (1 - status["coverage"])
 
 
 def test_browser_teleop_hold_save_and_load(server, driver):
