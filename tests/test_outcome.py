@@ -153,3 +153,15 @@ def test_fine_tuning_a_fine_tuned_flow_is_refused(tmp_path: Path) -> None:
 
     with pytest.raises(ValueError, match="fine-tuned already"):
         finetune(FinetuneConfig(algo="outcome", init="models/flow", name="again", out_dir=str(tmp_path), progress=False))
+
+
+def test_value_probe_runs_and_refuses_a_flow_without_chooser() -> None:
+    script = [sys.executable, "scripts/value_probe.py"]
+    done = subprocess.run([*script, "--collect", "4", "--fit-steps", "5", "--episodes", "2"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert result["value_fit"]["states"] > 4
+    for name in ("corner_distance", "value_of_next_state"):
+        assert result[name]["seeds"] == [300000, 300001] and 0 <= result[name]["success_rate"] <= 1
+    plain = subprocess.run([*script, "--model", str(SHIPPED), "--collect", "2"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert plain.returncode == 2 and plain.stderr.strip().endswith("has no outcome chooser (outcome_dims in its architecture)")
