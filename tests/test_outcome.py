@@ -165,3 +165,18 @@ def test_value_probe_runs_and_refuses_a_flow_without_chooser() -> None:
         assert result[name]["seeds"] == [300000, 300001] and 0 <= result[name]["success_rate"] <= 1
     plain = subprocess.run([*script, "--model", str(SHIPPED), "--collect", "2"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert plain.returncode == 2 and plain.stderr.strip().endswith("has no outcome chooser (outcome_dims in its architecture)")
+
+
+def test_a_resumed_outcome_fit_goes_on_with_its_random_stream(tmp_path: Path) -> None:
+    from training.finetune_config import FinetuneConfig
+    from training.noise_rl import NoiseAgent
+    from training.outcome_fit import OutcomeFit
+
+    cfg = FinetuneConfig(algo="outcome", outcome_dims="8", candidates=2, name="x", out_dir=str(tmp_path), progress=False)
+    base, card = load_checkpoint(SHIPPED)
+    fit = OutcomeFit(NoiseAgent(base, card, cfg), cfg, torch.Generator().manual_seed(0))
+    fit.rng.random(5)
+    tensors, extra = fit.state()
+    again = OutcomeFit(NoiseAgent(base, card, cfg), cfg, torch.Generator().manual_seed(0))
+    again.load_state(tensors, json.loads(json.dumps(extra)))  # the state goes through JSON on disk
+    assert again.rng.random() == fit.rng.random()

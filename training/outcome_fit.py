@@ -37,6 +37,16 @@ class OutcomeFit(Resumable):
         """(modules, optimizers, replays) by name."""
         return {"outcome": self.selector.model}, {"outcome": self.opt}, {"labels": self.replay}
 
+    def state(self) -> tuple[dict[str, torch.Tensor], dict]:
+        """As `Resumable.state`, plus the numpy stream that picks labelled envs and exploring ones."""
+        tensors, extra = super().state()
+        return tensors, {**extra, "numpy_rng": self.rng.bit_generator.state}
+
+    def load_state(self, tensors: dict[str, torch.Tensor], extra: dict) -> None:
+        """Restore what `state` saved."""
+        super().load_state(tensors, extra)
+        self.rng.bit_generator.state = extra["numpy_rng"]
+
     def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
         """`rollout_decisions` decisions in every env, each followed by the updates; returns figures for the log."""
         agent, cfg, losses = self.agent, self.cfg, []
