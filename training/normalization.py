@@ -99,6 +99,10 @@ class Normalizer(nn.Module):
         """The model's view of env-unit states [B, S]: z-scored."""
         return (state - self.state_mean) / self.state_std
 
+    def env_state(self, state_n: torch.Tensor) -> torch.Tensor:
+        """Env-unit states [B, S] of z-scored ones: inverse of `state`."""
+        return state_n * self.state_std + self.state_mean
+
     def chunk(self, state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
         """The model's view of env-unit chunks [B, H, A] taken in states [B, S]: in the frame, z-scored."""
         return (self.in_frame(state, chunk) - self.action_mean) / self.action_std

@@ -24,7 +24,7 @@ from torch.nn import functional as F
 from pusht.geometry import GOAL_POSE
 from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import tee_keypoints
-from training.selection import orthogonal_maps
+from training.selection import candidate_starts, orthogonal_maps
 
 __all__ = ["OutcomeModel", "OutcomeSelector", "goal_corner_distance"]
 
@@ -91,8 +91,7 @@ class OutcomeSelector(nn.Module):
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def candidates_of(self, noise: torch.Tensor, noise_scale: float) -> torch.Tensor:
         """The K candidate starts [B, K, H, A] of standard-normal `noise` [B, H, A] (candidate 0 is noise_scale * noise)."""
-        cands = torch.einsum("bd,ked->bke", noise.flatten(1), self.rotations)
-        return (noise_scale * cands).reshape(-1, self.candidates, *self.chunk_shape)
+        return candidate_starts(noise, self.rotations, noise_scale)
 
     def candidate_chunks(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The flow's K normalized candidate chunks [B, K, H, A] of `noise` from its inputs `state_n`, and their clipped env-unit actions."""
@@ -129,7 +128,7 @@ def goal_corner_distance(pose: torch.Tensor) -> torch.Tensor:
 
 def _env_state(flow: nn.Module, state_n: torch.Tensor) -> torch.Tensor:
     """Env-unit states [B, S] back from the flow's inputs (the normalized state comes first)."""
-    return state_n[:, : flow.state_dim] * flow.normalizer.state_std + flow.normalizer.state_mean
+    return flow.normalizer.env_state(state_n[:, : flow.state_dim])
 
 
 def _to_block_frame(vectors: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:

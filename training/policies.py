@@ -118,7 +118,7 @@ class _ChunkPolicy(nn.Module):
         if self.angle_encoding == "raw":
             return state_n
         base, motion = state_n[:, : self.state_dim], state_n[:, self.state_dim :]
-        raw = base * self.normalizer.state_std + self.normalizer.state_mean
+        raw = self.normalizer.env_state(base)
         angle = raw[:, -1:]
         parts = [base[:, :-1], torch.sin(angle), torch.cos(angle)]
         if self.angle_encoding == "keypoints":

@@ -47,8 +47,7 @@ class NoiseSelector(nn.Module):
 
     def candidates_of(self, noise: torch.Tensor, noise_scale: float) -> torch.Tensor:
         """The K candidate starts [B, K, H, A] of standard-normal `noise` [B, H, A] (candidate 0 is noise_scale * noise)."""
-        cands = torch.einsum("bd,ked->bke", noise.flatten(1), self.rotations)
-        return (noise_scale * cands).reshape(-1, self.candidates, *self.chunk_shape)
+        return candidate_starts(noise, self.rotations, noise_scale)
 
     def forward(self, encoded_state: torch.Tensor, noise: torch.Tensor, noise_scale: float) -> torch.Tensor:
         """The flow's start x0 [B, H, A]: the candidate of `noise` with the highest Q."""
@@ -58,6 +57,14 @@ class NoiseSelector(nn.Module):
         scores = self.value(states, cands.reshape(-1, *self.chunk_shape)).reshape(-1, k)
         index = scores.argmax(dim=1).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
         return torch.gather(cands, 1, index).squeeze(1)
+
+
+def candidate_starts(noise: torch.Tensor, rotations: torch.Tensor, noise_scale: float) -> torch.Tensor:
+    """The K starts [B, K, H, A] that K orthogonal maps [K, D, D] make of standard-normal `noise` [B, H, A], times noise_scale.
+
+    Each map keeps the noise standard normal; shapes use -1, never a traced batch size (a dynamic-batch ONNX graph)."""
+    cands = torch.einsum("bd,ked->bke", noise.flatten(1), rotations)
+    return (noise_scale * cands).reshape(-1, rotations.shape[0], *noise.shape[1:])
 
 
 def orthogonal_maps(k: int, dim: int) -> torch.Tensor:
