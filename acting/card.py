@@ -84,14 +84,15 @@ class Card:
         return self.path.parent / Path(file).name
 
     def network_evaluations(self, num_steps: int | None = None) -> int:
-        """Network evaluations per chunk: 1 for mse; a flow's step count, and with an outcome chooser over K candidates
-        K times that plus the K outcome-model passes."""
+        """Network evaluations per chunk: 1 for mse; a flow's step count, and with an outcome chooser over K candidates at
+        S stretches K times that plus the K x S outcome-model passes."""
         if self.kind != "flow":
             return 1
         steps = num_steps or self.num_steps
         if self.architecture.get("outcome_dims") is None:
             return steps
-        return int(self.architecture.get("outcome_candidates", 16)) * (steps + 1)
+        candidates = int(self.architecture.get("outcome_candidates", 16))
+        return candidates * (steps + len(self.architecture.get("outcome_stretches", [1.0])))
 
 
 def card_stem(path: str | Path) -> Path:

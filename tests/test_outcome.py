@@ -23,9 +23,10 @@ REPO = Path(__file__).resolve().parent.parent
 SHIPPED = REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"  # the plain flow inside models/flow
 
 
-def _chooser_from_shipped(candidates: int, dims=(32,)):
+def _chooser_from_shipped(candidates: int, dims=(32,), stretches=(1.0,)):
     base, card = load_checkpoint(SHIPPED)
-    policy = build_policy("flow", **{**card["architecture"], "outcome_dims": list(dims), "outcome_candidates": candidates})
+    policy = build_policy("flow", **{**card["architecture"], "outcome_dims": list(dims), "outcome_candidates": candidates,
+                                     "outcome_stretches": list(stretches)})
     policy.load_state_dict(base.state_dict(), strict=False)
     policy.normalizer.set(base.normalizer)
     return base.eval(), policy.eval()
@@ -98,16 +99,30 @@ def test_a_flow_choosing_among_one_candidate_is_the_plain_flow() -> None:
         torch.testing.assert_close(one.act(states, noise), base.act(states, noise), atol=1e-4, rtol=0)
 
 
-def test_a_flow_with_candidates_plays_one_of_its_candidate_chunks() -> None:
-    _, policy = _chooser_from_shipped(candidates=5)
+@pytest.mark.parametrize("stretches", [(1.0,), (1.0, 1.5, 0.7)])
+def test_a_flow_with_candidates_plays_one_of_its_candidate_chunks(stretches) -> None:
+    _, policy = _chooser_from_shipped(candidates=5, stretches=stretches)
     states = torch.tensor([[150.0, 350.0, 240.0, 260.0, 0.5], [300.0, 100.0, 200.0, 300.0, 2.0], [260.0, 250.0, 255.0, 258.0, math.pi / 4]])
     noise = torch.randn(3, 12, 2)
     with torch.no_grad():
         acted = policy.act(states, noise)
         _, actions = policy.outcome.candidate_chunks(policy, policy.policy_state(states), noise, 10)
         index = policy.outcome.choose(states, actions)
-    torch.testing.assert_close(acted, actions[torch.arange(3), index], atol=1e-4, rtol=0)
+    assert actions.shape == (3, 5 * len(stretches), 12, 2) and policy.outcome.choices == 5 * len(stretches)
+    torch.testing.assert_close(acted, actions[torch.arange(3), index], atol=1e-3, rtol=0)
     assert not torch.allclose(actions[:, 0], actions[:, 1])  # the candidates differ
+
+
+def test_a_stretched_candidate_moves_every_target_that_much_farther_from_the_agent() -> None:
+    _, policy = _chooser_from_shipped(candidates=4, stretches=(1.0, 1.5, 0.5))
+    states = torch.tensor([[250.0, 240.0, 300.0, 280.0, 0.5], [220.0, 300.0, 260.0, 250.0, 2.0]])  # mid-arena: nothing clipped
+    with torch.no_grad():
+        _, actions = policy.outcome.candidate_chunks(policy, policy.policy_state(states), torch.randn(2, 12, 2), 10)
+    plain, agent = actions[:, :4], states[:, None, None, :2]
+    assert plain.min() > 0 and plain.max() < 512
+    for i, stretch in enumerate((1.5, 0.5), start=1):
+        want = torch.clamp(agent + stretch * (plain - agent), 0, 512)
+        torch.testing.assert_close(actions[:, 4 * i : 4 * (i + 1)], want, atol=1e-3, rtol=0)
 
 
 @pytest.mark.parametrize("args", [["smoothness", "--states", "4"], ["best-of", "--episodes", "2", "--candidates", "2", "--criterion", "keypoints"],
@@ -130,7 +145,11 @@ def test_outcome_keys_are_validated() -> None:
         build_policy("flow", outcome_dims=[8], outcome_candidates=0)
     with pytest.raises(ValueError, match="one of steering_dims, selector_dims and outcome_dims"):
         build_policy("flow", outcome_dims=[8], steering_dims=[8])
+    for bad in ([1.5, 1.0], [], [1.0, 0.0], [1.0, 5.0], "1"):
+        with pytest.raises(ValueError, match="outcome_stretches"):
+            build_policy("flow", outcome_dims=[8], outcome_stretches=bad)
     assert "outcome_dims" not in build_policy("flow").architecture  # cards of plain flows are unchanged
+    assert "outcome_stretches" not in build_policy("flow", outcome_dims=[8]).architecture  # nor those of unstretched choosers
 
 
 def test_a_chooser_counts_every_candidate_pass(tmp_path: Path) -> None:
@@ -142,17 +161,31 @@ def test_a_chooser_counts_every_candidate_pass(tmp_path: Path) -> None:
     assert card.network_evaluations() == 16 * 11 and card.network_evaluations(2) == 16 * 3
     plain = Card(tmp_path / "p.json", {"name": "p", "kind": "flow", "architecture": {"hidden_dims": [8]}, "onnx": None})
     assert plain.network_evaluations() == 10
+    stretched = Card(tmp_path / "s.json", {"name": "s", "kind": "flow", "architecture": {**arch, "outcome_stretches": [1.0, 1.5, 2.0]}, "onnx": None})
+    assert stretched.network_evaluations() == 16 * 10 + 16 * 3  # the flow integrates 16 chunks; the model scores 48
     # a fine-tuned run ships with its own command, not a training.train one
     tuned = {"architecture": arch, "config": {"algo": "outcome"}, "reproduce": {"finetune": "python -m training.finetune --algo outcome"}}
     assert reproduce_commands(tuned, Path("runs/x"), "flow")[0] == "python -m training.finetune --algo outcome"
 
 
-def test_fine_tuning_a_fine_tuned_flow_is_refused(tmp_path: Path) -> None:
+def test_fine_tuning_a_fine_tuned_flow_is_refused_unless_an_outcome_fit_continues_it(tmp_path: Path) -> None:
     from training.finetune import finetune
     from training.finetune_config import FinetuneConfig
 
     with pytest.raises(ValueError, match="fine-tuned already"):
-        finetune(FinetuneConfig(algo="outcome", init="models/flow", name="again", out_dir=str(tmp_path), progress=False))
+        finetune(FinetuneConfig(algo="qselect", init="models/flow", name="again", out_dir=str(tmp_path), progress=False))
+    with pytest.raises(ValueError, match="must match to start from it"):
+        finetune(FinetuneConfig(algo="outcome", init="models/flow", outcome_dims="8", name="again", out_dir=str(tmp_path), progress=False))
+    run = finetune(FinetuneConfig(algo="outcome", init="models/flow", stretches="1,1.5", iterations=1, num_envs=2, rollout_decisions=1,
+                                  label_envs=1, eval_every=0, batch_size=8, learning_starts=8, name="warm", out_dir=str(tmp_path), progress=False))
+    policy, card = load_checkpoint(str(run.dir / "last"))
+    shipped, _ = load_checkpoint(str(REPO / "models" / "flow"))
+    assert card["architecture"]["outcome_stretches"] == [1.0, 1.5] and policy.outcome.choices == 32
+    # the fit starts from the shipped chooser's model (one iteration moves it only a little) and leaves the flow as it was
+    before, after = shipped.state_dict(), policy.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before if not k.startswith("outcome.model."))
+    start = shipped.outcome.model.net[0].weight
+    assert (policy.outcome.model.net[0].weight - start).abs().max() < 0.05 * start.abs().max()
 
 
 def test_value_probe_runs_and_refuses_a_flow_without_chooser() -> None:
@@ -180,3 +213,24 @@ def test_a_resumed_outcome_fit_goes_on_with_its_random_stream(tmp_path: Path) ->
     again = OutcomeFit(NoiseAgent(base, card, cfg), cfg, torch.Generator().manual_seed(0))
     again.load_state(tensors, json.loads(json.dumps(extra)))  # the state goes through JSON on disk
     assert again.rng.random() == fit.rng.random()
+
+
+def test_bad_stretches_on_the_command_line_get_one_line_naming_them() -> None:
+    done = subprocess.run([sys.executable, "-m", "training.finetune", "--algo", "outcome", "--stretches", "1.5,1"], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and "stretches must be comma-separated numbers in (0, 4] starting with 1" in done.stderr
+
+
+def test_a_stretched_chooser_exports_and_the_graph_acts_as_torch(tmp_path: Path) -> None:
+    import acting
+    from training.checkpoint import save_checkpoint
+    from training.export import export_onnx
+
+    _, policy = _chooser_from_shipped(candidates=4, stretches=(1.0, 1.4))
+    save_checkpoint(tmp_path / "c", policy, policy.normalizer.to_dict())
+    info = export_onnx(tmp_path / "c")
+    assert info["max_abs_diff"] < 1e-3
+    states = np.array([[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1], [250.0, 240.0, 300.0, 280.0, 0.5]], np.float32)
+    onnx_policy, torch_policy = acting.load_policy(tmp_path / "c.onnx"), acting.load_policy(tmp_path / "c")
+    np.testing.assert_allclose(onnx_policy.act(states, seeds=[1, 2, 3]), torch_policy.act(states, seeds=[1, 2, 3]), atol=1e-3)
+    assert torch_policy.card.network_evaluations() == 4 * 10 + 4 * 2

@@ -22,11 +22,11 @@ DEFAULT_TIME_EMBEDDING_DIM = 32
 _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
 MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame", "prev_state", "pace_input", "acting_pace")
 FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale", "steering_dims", "selector_dims", "selector_candidates",
-                                  "outcome_dims", "outcome_candidates")
+                                  "outcome_dims", "outcome_candidates", "outcome_stretches")
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 _VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar",
                      "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0, "steering_dims": None,
-                     "selector_dims": None, "selector_candidates": 16, "outcome_dims": None, "outcome_candidates": 16, "prev_state": False,
+                     "selector_dims": None, "selector_candidates": 16, "outcome_dims": None, "outcome_candidates": 16, "outcome_stretches": [1.0], "prev_state": False,
                      "pace_input": False, "acting_pace": None}
 
 
@@ -75,6 +75,8 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         k = variants.get(key, 16)
         if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 256:
             raise ValueError(f"{key} must be an int in [1, 256], got {k!r}")
+    if "outcome_stretches" in variants:
+        variants["outcome_stretches"] = check_stretches(variants["outcome_stretches"])
     chosen = [key for key in ("steering_dims", "selector_dims", "outcome_dims") if variants.get(key) is not None]
     if len(chosen) > 1:
         raise ValueError(f"a flow takes one of steering_dims, selector_dims and outcome_dims, got {' and '.join(chosen)}")
@@ -104,3 +106,12 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         if variants["time_embedding"] == "scalar" and dim != DEFAULT_TIME_EMBEDDING_DIM:
             raise ValueError('time_embedding_dim applies only to time_embedding="sinusoidal"')
     return variants
+
+
+def check_stretches(stretches: Any) -> list[float]:
+    """The outcome chooser's chunk stretches: numbers in (0, 4], the first 1 (the flow's own chunks, what near-ties fall back to)."""
+    if isinstance(stretches, (str, bytes)) or not isinstance(stretches, Sequence) or not stretches or any(
+        isinstance(s, bool) or not isinstance(s, (int, float)) or not 0 < s <= 4 for s in stretches
+    ) or stretches[0] != 1:
+        raise ValueError(f"outcome_stretches must be a list of numbers in (0, 4] starting with 1, got {stretches!r}")
+    return [float(s) for s in stretches]

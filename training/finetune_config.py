@@ -27,7 +27,8 @@ class FinetuneConfig:
 
     algo: str = option("ppo", "ppo (a steering network, on-policy clipped surrogate), qselect (a critic picks the best of --candidates starts) "
                        "or outcome (a learned one-chunk model of the block picks the best of --candidates chunks)", choices=ALGOS)
-    init: str = option(IMITATION_FLOW, "plain flow checkpoint stem to fine-tune (its weights stay frozen; default: the imitation flow inside the shipped one)")
+    init: str = option(IMITATION_FLOW, "plain flow checkpoint stem to fine-tune (its weights stay frozen; default: the imitation flow inside the shipped one); "
+                       "with --algo outcome also a flow with an outcome chooser, whose model the fit starts from")
     name: str = option("flow-dsrl", "run name; outputs go to OUT_DIR/NAME")
     out_dir: str = option("runs", "parent folder of run folders")
     iterations: int = option(1000, "PPO iterations (each: rollout_decisions chunks in every env, then the update)")
@@ -38,6 +39,7 @@ class FinetuneConfig:
     lr: float = option(3e-4, "Adam learning rate of the steering")
     critic_lr: float = option(1e-3, "Adam learning rate of the critic (outcome: of the outcome model)")
     outcome_dims: str = option("512,512,512,512", "outcome: hidden widths of the one-chunk outcome model (comma-separated)")
+    stretches: str = option("1", "outcome: stretches of each candidate chunk (comma-separated, the first 1): a chunk's targets s times as far from the agent")
     explore: float = option(0.2, "outcome: probability that an env plays a random candidate instead of the model's choice")
     gamma: float = option(0.99, "discount per decision (one chunk)")
     gae_lambda: float = option(0.95, "GAE lambda")
@@ -91,6 +93,7 @@ class FinetuneConfig:
         self.steering_dims_list()
         self.critic_dims_list()
         self.outcome_dims_list()
+        self.stretches_list()
 
     def steering_dims_list(self) -> list[int]:
         """`steering_dims` as a list of widths."""
@@ -103,6 +106,15 @@ class FinetuneConfig:
     def outcome_dims_list(self) -> list[int]:
         """`outcome_dims` as a list of widths."""
         return _widths("outcome_dims", self.outcome_dims)
+
+    def stretches_list(self) -> list[float]:
+        """`stretches` as a list of floats."""
+        from training.architecture import check_stretches
+
+        try:
+            return check_stretches([float(s) for s in self.stretches.split(",")])
+        except ValueError:
+            raise ValueError(f"stretches must be comma-separated numbers in (0, 4] starting with 1, got {self.stretches!r}") from None
 
     def ppo_settings(self) -> PPOSettings:
         """The PPO update's hyperparameters."""

@@ -57,14 +57,20 @@ class NoiseAgent:
     def __init__(self, base: torch.nn.Module, base_card: dict, cfg: FinetuneConfig) -> None:
         from training.policies import ActingPolicy, build_policy
 
-        learned = [key for key in ("steering_dims", "selector_dims", "outcome_dims") if base_card["architecture"].get(key) is not None]
-        if learned:
+        arch = base_card["architecture"]
+        learned = [key for key in ("steering_dims", "selector_dims", "outcome_dims") if arch.get(key) is not None]
+        # An outcome chooser may start another outcome fit (its model warm, its stretches and candidates as configured).
+        warm = cfg.algo == "outcome" and learned == ["outcome_dims"]
+        if learned and not warm:
             raise ValueError(f"{cfg.init}: this flow was fine-tuned already ({learned[0]} in its architecture); fine-tune a plain flow "
                              f"(--init {IMITATION_FLOW} is the one inside models/flow)")
+        if warm and (list(arch["outcome_dims"]) != cfg.outcome_dims_list() or arch.get("outcome_candidates", 16) != cfg.candidates):
+            raise ValueError(f"{cfg.init}: its outcome chooser has outcome_dims {arch['outcome_dims']} and "
+                             f"{arch.get('outcome_candidates', 16)} candidates; --outcome-dims and --candidates must match to start from it")
         if cfg.algo == "qselect":
             added = {"selector_dims": cfg.critic_dims_list(), "selector_candidates": cfg.candidates}
         elif cfg.algo == "outcome":
-            added = {"outcome_dims": cfg.outcome_dims_list(), "outcome_candidates": cfg.candidates}
+            added = {"outcome_dims": cfg.outcome_dims_list(), "outcome_candidates": cfg.candidates, "outcome_stretches": cfg.stretches_list()}
         else:
             added = {"steering_dims": cfg.steering_dims_list()}
         self.policy = build_policy("flow", **{**base_card["architecture"], **added})

@@ -1,7 +1,7 @@
 """`training.finetune --algo outcome`: fit the outcome model of a flow's candidate chooser on simulated chunks (DAgger-style).
 
-At each decision every env's state gets K candidate chunks from the frozen flow (fresh noise through
-the selector's K maps). In `label_envs` of the envs each candidate is simulated one chunk ahead from
+At each decision every env's state gets K x S candidate chunks from the frozen flow (fresh noise through
+the selector's K maps, each chunk at the S stretches). In `label_envs` of the envs each candidate is simulated one chunk ahead from
 the present state (`ChunkVectorEnv.lookahead`: training only), and (state, chunk, end state) joins the
 replay. The envs then play the chunk the current model chooses (a random candidate with probability
 `explore`, and always before `learning_starts` labels), so the model keeps learning on the states its
@@ -60,7 +60,7 @@ class OutcomeFit(Resumable):
             explore = self.rng.random(envs.num_envs) < cfg.explore
             if self.replay.size < cfg.learning_starts:
                 explore[:] = True
-            chosen[explore] = self.rng.integers(self.selector.candidates, size=int(explore.sum()))
+            chosen[explore] = self.rng.integers(self.selector.choices, size=int(explore.sum()))
             result = envs.step(actions.numpy()[np.arange(envs.num_envs), chosen])
             finished_max.extend(result.finished_max_reward)
             finished_success.extend(result.finished_success)
@@ -70,7 +70,7 @@ class OutcomeFit(Resumable):
 
     def _label(self, envs: ChunkVectorEnv, states: torch.Tensor, actions: np.ndarray) -> None:
         rows = self.rng.permutation(envs.num_envs)[: self.cfg.label_envs]
-        k = self.selector.candidates
+        k = self.selector.choices
         ends = np.concatenate([envs.lookahead(int(i), actions[i]).next_obs for i in rows])
         self.replay.add(enc=states[rows].repeat_interleave(k, dim=0), x0=torch.as_tensor(actions[rows]).flatten(0, 1),
                         end=torch.as_tensor(ends, dtype=torch.float32))

@@ -208,6 +208,7 @@ class FlowPolicy(_ChunkPolicy):
         selector_candidates: int = 16,
         outcome_dims: Sequence[int] | None = None,
         outcome_candidates: int = 16,
+        outcome_stretches: Sequence[float] = (1.0,),
         prev_state: bool = False,
         pace_input: bool = False,
         acting_pace: Sequence[float] | None = None,
@@ -217,7 +218,8 @@ class FlowPolicy(_ChunkPolicy):
             hidden_dims, dropout, horizon, action_dim, state_dim, angle_encoding=angle_encoding, state_skip=state_skip,
             time_embedding=time_embedding, time_embedding_dim=time_embedding_dim, action_frame=action_frame,
             noise_scale=noise_scale, steering_dims=steering_dims, selector_dims=selector_dims,
-            selector_candidates=selector_candidates, outcome_dims=outcome_dims, outcome_candidates=outcome_candidates, prev_state=prev_state, pace_input=pace_input, acting_pace=acting_pace))
+            selector_candidates=selector_candidates, outcome_dims=outcome_dims, outcome_candidates=outcome_candidates,
+            outcome_stretches=list(outcome_stretches), prev_state=prev_state, pace_input=pace_input, acting_pace=acting_pace))
         # Sampling only (training draws x0 ~ N(0, I)): starting closer to the mean trades diversity
         # for precision, chosen by rollouts on non-held-out seeds (models/README.md).
         self.noise_scale = self._arch["noise_scale"]
@@ -248,7 +250,8 @@ class FlowPolicy(_ChunkPolicy):
         if self._arch["outcome_dims"] is not None:
             from training.outcome import OutcomeSelector
 
-            self.outcome = OutcomeSelector((horizon, action_dim), self._arch["outcome_dims"], self._arch["outcome_candidates"])
+            self.outcome = OutcomeSelector((horizon, action_dim), self._arch["outcome_dims"], self._arch["outcome_candidates"],
+                                           self._arch["outcome_stretches"])
 
     def forward(self, state_n: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """Velocity [B, H, A] at noisy normalized chunks x_t [B, H, A] and times t [B] or [B, 1], given normalized states [B, S]."""
