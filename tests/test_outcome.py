@@ -234,3 +234,23 @@ def test_a_stretched_chooser_exports_and_the_graph_acts_as_torch(tmp_path: Path)
     onnx_policy, torch_policy = acting.load_policy(tmp_path / "c.onnx"), acting.load_policy(tmp_path / "c")
     np.testing.assert_allclose(onnx_policy.act(states, seeds=[1, 2, 3]), torch_policy.act(states, seeds=[1, 2, 3]), atol=1e-3)
     assert torch_policy.card.network_evaluations() == 4 * 10 + 4 * 2
+
+
+def test_setting_the_candidate_count_keeps_every_learned_weight_and_the_first_maps(tmp_path: Path) -> None:
+    from training.checkpoint import save_checkpoint, set_outcome_candidates
+    from training.ship import reproduce_commands
+
+    _, policy = _chooser_from_shipped(candidates=4, stretches=(1.0, 1.5))
+    save_checkpoint(tmp_path / "c", policy, policy.normalizer.to_dict(), config={"algo": "outcome", "candidates": 4},
+                    reproduce={"finetune": "python -m training.finetune --algo outcome --candidates 4"})
+    card = set_outcome_candidates(tmp_path / "c", 8)
+    resized, loaded = load_checkpoint(tmp_path / "c")
+    assert card["architecture"]["outcome_candidates"] == loaded["architecture"]["outcome_candidates"] == 8 and resized.outcome.choices == 16
+    before, after = policy.state_dict(), resized.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before if k != "outcome.rotations")
+    assert torch.equal(after["outcome.rotations"][:4], before["outcome.rotations"])
+    assert loaded["config"] == {"algo": "outcome", "candidates": 4}  # the fit's own config stays
+    assert reproduce_commands(loaded, Path("runs/c"), "flow")[1].endswith("--outcome-candidates 8")
+    save_checkpoint(tmp_path / "plain", *load_checkpoint(SHIPPED)[:1])
+    with pytest.raises(ValueError, match="outcome chooser"):
+        set_outcome_candidates(tmp_path / "plain", 8)

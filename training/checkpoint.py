@@ -161,6 +161,24 @@ def set_acting_pace(stem: str | Path, rule: list[float]) -> dict[str, Any]:
     return _set_acting_key(stem, "acting_pace", [float(v) for v in rule], None)
 
 
+def set_outcome_candidates(stem: str | Path, candidates: int) -> dict[str, Any]:
+    """Set how many candidate chunks a flow's outcome chooser integrates; returns the card.
+
+    Its candidate maps come from a fixed seed (`training.selection.orthogonal_maps`: the first ones are the same for
+    every count), so only those maps and the card change, never a learned weight."""
+    stem = checkpoint_stem(stem)
+    policy, card = load_checkpoint(stem)
+    if policy.kind != "flow" or policy.outcome is None:
+        raise ValueError(f"{stem.with_suffix(CARD_SUFFIX)}: outcome_candidates applies to flows with an outcome chooser")
+    resized = build_policy("flow", **{**card["architecture"], "outcome_candidates": candidates})  # validates the count
+    missing, unexpected = resized.load_state_dict({k: v for k, v in policy.state_dict().items() if k != "outcome.rotations"}, strict=False)
+    if missing != ["outcome.rotations"] or unexpected:
+        raise ValueError(f"{stem}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
+    resized.normalizer.set(policy.normalizer)
+    derived = {"kind", "architecture", "num_parameters", "normalization"}
+    return save_checkpoint(stem, resized, **{k: v for k, v in card.items() if k not in derived})
+
+
 def _set_acting_key(stem: str | Path, key: str, value: Any, default: Any) -> dict[str, Any]:
     """Set how a flow checkpoint acts (an architecture key the weights do not depend on), validated; returns the card."""
     stem = checkpoint_stem(stem)

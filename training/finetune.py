@@ -4,8 +4,8 @@
     python -m training.finetune --algo outcome --name flow-outcome16 --iterations 160 ...   (models/README.md)
 
 `--algo outcome` (`training.outcome_fit`) fits a one-chunk model of the block on simulated lookaheads
-of the flow's own candidate chunks; the served flow then plays the candidate it predicts closest to
-the goal. `--algo ppo` and `--algo qselect` learn in the noise space: with ppo,
+of the flow's own candidate chunks (each also at `--stretches`, faster); the served flow then plays the
+candidate it predicts closest to the goal. Its `--init` may be such a chooser, whose model it goes on fitting. `--algo ppo` and `--algo qselect` learn in the noise space: with ppo,
 a steering network (`training.steering`) picks the start noise from the state. The flow's
 weights never change. One decision is one 12-action chunk executed open loop in `num_envs` envs
 (`training.chunk_env`), on training seeds disjoint from every evaluation and held-out range. Reward

@@ -25,7 +25,8 @@ from pathlib import Path
 from typing import Any
 
 from pusht.spec import HELD_OUT_SEED
-from training.checkpoint import CheckpointError, load_card, set_acting_pace, set_noise_scale, update_card, write_text_atomic
+from training.checkpoint import (CheckpointError, load_card, set_acting_pace, set_noise_scale, set_outcome_candidates, update_card,
+                                 write_text_atomic)
 from training.config import HelpFormatter, command_line
 from training.evaluate import ENVS, evaluate_policy, load_model, report, write_gif
 from training.export import export_onnx
@@ -46,12 +47,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--noise-scale", type=float, default=None, help="flow: set the sampling noise_scale of the run's final and best checkpoints first (chosen on non-held-out seeds)")
     parser.add_argument("--acting-pace", type=float, nargs=4, default=None, metavar=("FAR", "NEAR", "RADIUS", "RAMP"),
                         help="flow with a pace input: set the pace it acts at by goal distance (training.pace), like --noise-scale")
+    parser.add_argument("--outcome-candidates", type=int, default=None, metavar="K",
+                        help="flow with an outcome chooser: set how many candidate chunks it integrates, like --noise-scale")
     parser.add_argument("--note", default="", help="what changed from the published recipe and why (stored in the card)")
     parser.add_argument("--force", action="store_true", help="replace MODELS_DIR/NAME even if it scores better on the held-out seeds")
     args = parser.parse_args(argv)
     try:
         lines = ship(Path(args.run), args.name, Path(args.models_dir), args.episodes, args.seed, args.envs, args.note,
-                     args.noise_scale, Path(args.records_dir), args.force, args.acting_pace)
+                     args.noise_scale, Path(args.records_dir), args.force, args.acting_pace, args.outcome_candidates)
         for line in lines:
             print(json.dumps(line))
     except (ValueError, FileNotFoundError) as exc:
@@ -72,10 +75,12 @@ def ship(
     records_dir: Path = Path("records"),
     force: bool = False,
     acting_pace: list[float] | None = None,
+    outcome_candidates: int | None = None,
 ) -> list[dict[str, Any]]:
     """Record `run` in `records_dir`, ship its final checkpoint as `models_dir/name` if named; returns the reports.
 
-    `noise_scale` and `acting_pace` (flow) are first set on the run's final and best checkpoints, so every score and export uses them.
+    `noise_scale`, `acting_pace` and `outcome_candidates` (flow) are first set on the run's final and best checkpoints, so every
+    score and export uses them.
     """
     check_finished(run)
     has_best = (run / "best.json").is_file()
@@ -84,6 +89,8 @@ def ship(
             set_noise_scale(run / checkpoint, noise_scale)
         if acting_pace is not None:
             set_acting_pace(run / checkpoint, acting_pace)
+        if outcome_candidates is not None:
+            set_outcome_candidates(run / checkpoint, outcome_candidates)
     record = records_dir / run.name
     extra = {"recipe_changes": note} if note else {}
     reports: list[dict[str, Any]] = []
@@ -179,6 +186,9 @@ def reproduce_commands(card: dict[str, Any], run: Path, name: str) -> list[str]:
     rule = card["architecture"].get("acting_pace")
     if rule is not None:
         ship_command += " --acting-pace " + " ".join(f"{v:g}" for v in rule)
+    candidates, fitted = card["architecture"].get("outcome_candidates", 16), (card.get("config") or {}).get("candidates")
+    if card["architecture"].get("outcome_dims") is not None and fitted is not None and candidates != fitted:
+        ship_command += f" --outcome-candidates {candidates}"  # chosen at shipping, as the noise scale
     return [made or command_line(card["config"]), ship_command]
 
 
