@@ -183,7 +183,9 @@ def test_fine_tuning_a_fine_tuned_flow_is_refused_unless_an_outcome_fit_continue
     assert card["architecture"]["outcome_stretches"] == [1.0, 1.5] and policy.outcome.choices == 32
     # the fit starts from the shipped chooser's model (one iteration moves it only a little) and leaves the flow as it was
     before, after = shipped.state_dict(), policy.state_dict()
-    assert all(torch.equal(before[k], after[k]) for k in before if not k.startswith("outcome.model."))
+    assert all(torch.equal(before[k], after[k]) for k in before if not k.startswith("outcome."))
+    k = policy.outcome.candidates  # the candidate maps are the configured count's, the first ones the same for every count
+    assert k == 16 and torch.equal(after["outcome.rotations"], before["outcome.rotations"][:k])
     start = shipped.outcome.model.net[0].weight
     assert (policy.outcome.model.net[0].weight - start).abs().max() < 0.05 * start.abs().max()
 

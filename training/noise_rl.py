@@ -64,9 +64,8 @@ class NoiseAgent:
         if learned and not warm:
             raise ValueError(f"{cfg.init}: this flow was fine-tuned already ({learned[0]} in its architecture); fine-tune a plain flow "
                              f"(--init {IMITATION_FLOW} is the one inside models/flow)")
-        if warm and (list(arch["outcome_dims"]) != cfg.outcome_dims_list() or arch.get("outcome_candidates", 16) != cfg.candidates):
-            raise ValueError(f"{cfg.init}: its outcome chooser has outcome_dims {arch['outcome_dims']} and "
-                             f"{arch.get('outcome_candidates', 16)} candidates; --outcome-dims and --candidates must match to start from it")
+        if warm and list(arch["outcome_dims"]) != cfg.outcome_dims_list():
+            raise ValueError(f"{cfg.init}: its outcome chooser has outcome_dims {arch['outcome_dims']}; --outcome-dims must match to start from it")
         if cfg.algo == "qselect":
             added = {"selector_dims": cfg.critic_dims_list(), "selector_candidates": cfg.candidates}
         elif cfg.algo == "outcome":
@@ -74,7 +73,8 @@ class NoiseAgent:
         else:
             added = {"steering_dims": cfg.steering_dims_list()}
         self.policy = build_policy("flow", **{**base_card["architecture"], **added})
-        missing, unexpected = self.policy.load_state_dict(base.state_dict(), strict=False)
+        # the candidate maps follow from the candidate count (a fixed seed), so a warm start takes them as configured
+        missing, unexpected = self.policy.load_state_dict({k: v for k, v in base.state_dict().items() if k != "outcome.rotations"}, strict=False)
         self.policy.normalizer.set(base.normalizer)
         if unexpected or any(not k.startswith(("steering.", "selector.", "outcome.")) for k in missing):
             raise ValueError(f"{cfg.init}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
