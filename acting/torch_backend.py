@@ -12,6 +12,7 @@ import numpy as np
 
 from acting.card import Card, CardError, require_regular_file
 from acting.policy import Policy
+from pusht.seeding import BATCH_MULTIPLE
 
 __all__ = ["TorchPolicy"]
 
@@ -56,15 +57,20 @@ class TorchPolicy(Policy):
         torch = self._torch
         was_training = self.module.training
         self.module.eval()
+        steps = self.default_num_steps if num_steps is None else num_steps
+        outs = []
         try:
             with torch.inference_mode():
-                state_t = torch.from_numpy(states)
-                prev_t = None if prev_states is None else torch.from_numpy(prev_states)
-                if noise is None:
-                    out = self.module(state_t, prev_state=prev_t)
-                else:
-                    steps = self.default_num_steps if num_steps is None else num_steps
-                    out = self.module(state_t, torch.from_numpy(noise), steps, prev_t)
+                # One padded group of rows per call: on some CPUs torch's matrix products round a group of four
+                # differently when more rows share the call, and a row's actions must not depend on its batch.
+                for lo in range(0, len(states), BATCH_MULTIPLE):
+                    rows = slice(lo, lo + BATCH_MULTIPLE)
+                    state_t = torch.from_numpy(states[rows])
+                    prev_t = None if prev_states is None else torch.from_numpy(prev_states[rows])
+                    if noise is None:
+                        outs.append(self.module(state_t, prev_state=prev_t))
+                    else:
+                        outs.append(self.module(state_t, torch.from_numpy(noise[rows]), steps, prev_t))
         finally:
             self.module.train(was_training)
-        return out.numpy()
+        return torch.cat(outs).numpy()

@@ -75,7 +75,7 @@ def features(state: torch.Tensor) -> torch.Tensor:
 
 def choose(flow, states: np.ndarray, seeds: list[int], value: nn.Module | None) -> np.ndarray:
     """The chunk [B, H, 2] each criterion picks among the chooser's candidates (None: the corner distance)."""
-    sel, k = flow.outcome, flow.outcome.candidates
+    sel, k = flow.outcome, flow.outcome.choices
     state = torch.as_tensor(states, dtype=torch.float32)
     with torch.no_grad():
         _, actions = sel.candidate_chunks(flow, flow.policy_state(state), torch.as_tensor(row_noise(seeds)), 10)

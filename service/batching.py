@@ -2,7 +2,7 @@
 
 Requests queue on the event loop. Whenever the policy's worker thread is free, one model call is cut
 from the queue: at most `max_cost` cost units (rows x network evaluations: a flow row costs its
-num_steps, an mse row 1) and `max_rows` rows, only rows with the oldest request's `num_steps`. The
+num_steps, an mse row 1; but always up to one padded group of 4 rows) and `max_rows` rows, only rows with the oldest request's `num_steps`. The
 call's rows are shared max-min fairly: requests with few rows left go whole, and bulk requests split
 the rest evenly. When small requests wait beside bulk ones, the next call is short (an eighth of the
 budget) and the next few half size, so a 1-row request waits about half a call however many
@@ -27,7 +27,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from acting import Policy
-from pusht.seeding import chunk_noise, row_noise
+from pusht.seeding import BATCH_MULTIPLE, chunk_noise, row_noise
 
 __all__ = ["Batcher", "Overloaded"]
 
@@ -213,8 +213,10 @@ class Batcher:
             pending.extend(live)
             group = sorted((item for item in live if item.num_steps == steps), key=lambda it: len(it.states) - it.taken)
         unit = group[0].unit
-        left = max(1, min(self.max_rows, self.max_cost // unit))
-        short = max(1, left // 8)
+        # A call computes a whole padded group of rows however few it takes (`pad_rows`), so it may always take one,
+        # even where a single row costs more than max_cost (a flow that chooses among many candidate chunks).
+        left = max(BATCH_MULTIPLE, min(self.max_rows, self.max_cost // unit))
+        short = max(BATCH_MULTIPLE, left // 8)
         remaining_first, remaining_last = (len(it.states) - it.taken for it in (group[0], group[-1]))
         if not self._last_short and remaining_first <= short < remaining_last:
             # Small requests beside bulk ones go in a short call, so they wait only for the call already

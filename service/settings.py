@@ -34,7 +34,8 @@ class Settings(BaseSettings):
     batch_max_cost: int = Field(
         640, ge=1,
         description=(
-            "most cost units (rows x network evaluations: num_steps per flow row, 1 per mse row) in one model call; "
+            "most cost units (rows x network evaluations: num_steps per flow row, 1 per mse row) in one model call, "
+            "though a call may always take one padded group of 4 rows; "
             "bulk batches are split across calls so that small requests never wait behind a long one"
         ),
     )

@@ -17,7 +17,8 @@ def test_table_of_the_real_records():
     records = [p for p in (REPO / "records").iterdir() if (p / "last.json").is_file()]
     assert len(rows) == sum(1 + (p / "best.json").is_file() for p in records)  # final and best (fine-tuning keeps no best)
     shipped = {row.split(" | ")[0].lstrip("| "): row.rstrip(" |").rsplit(" | ", 1)[-1] for row in rows if " final " in row}
-    assert shipped["flow-outcome16"] == "flow" and shipped["mse-sincos-skip-100k"] == "mse"
+    assert shipped["flow-outcome16-stretch"] == "flow" and shipped["mse-sincos-skip-100k"] == "mse"
+    assert shipped["flow-outcome16"] not in ("flow", "mse")  # the chooser it continues, shipped before
     assert shipped["flow-agentframe-padend-150k-noise0.3"] not in ("flow", "mse")  # the flow it fine-tunes, shipped before
 
 

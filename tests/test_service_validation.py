@@ -199,6 +199,8 @@ def test_num_steps_where_the_sampler_has_none_gets_a_422_and_policies_say_the_co
     from acting import read_card
 
     arch = read_card(server.models_dir / "flow.json").architecture
-    candidates = arch.get("outcome_candidates", 16) if arch.get("outcome_dims") else 1  # the shipped flow chooses among 16
+    # the shipped flow chooses among K candidates at S stretches: K x 10 flow steps, K x S outcome-model passes
+    candidates = arch.get("outcome_candidates", 16) if arch.get("outcome_dims") else 1
+    stretches = len(arch.get("outcome_stretches", [1.0])) if arch.get("outcome_dims") else 0
     assert policies["flow"]["num_steps"] == 10
-    assert policies["flow"]["network_evaluations"] == (10 if candidates == 1 else candidates * 11)
+    assert policies["flow"]["network_evaluations"] == candidates * 10 + candidates * stretches
