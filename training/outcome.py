@@ -7,8 +7,8 @@ smooth function of the chunk (shifted by 2 px, the coverage change correlates at
 physics looks the same in the block's frame wherever the block lies. So `OutcomeModel` learns there:
 the agent and the chunk's 12 targets relative to the block -> the block's displacement and rotation.
 Acting, `OutcomeSelector` has the flow integrate K candidates (K fixed orthogonal maps of the one
-`noise` input, as `training.selection`), predicts where each leaves the block, and keeps the one that
-leaves the tee's corners closest to the goal's. Nothing simulates the env at acting time; the exported
+`noise` input, as `training.selection`), offers each also stretched (faster), predicts where each
+leaves the block, and keeps the one that leaves the tee's corners closest to the goal's. Nothing simulates the env at acting time; the exported
 graph keeps its `state` and `noise` inputs. Imports only torch (and pusht's geometry constants).
 """
 
