@@ -2,13 +2,16 @@
 
     python -m training.distill --teacher models/flow --student-steps 1 --name flow-distill-1step
 
-The teacher's sampler is a deterministic map from (state, start noise) to a chunk. The student, a
-flow of the same architecture initialized with the teacher's weights, learns to reach the same chunk
+The teacher's sampler is a deterministic map from (state, start noise) to a chunk: a flow's Euler
+integration, or with an outcome chooser the chunk it picks among its candidates. The student, a plain
+flow of the teacher's architecture initialized with its flow's weights, learns to reach the same chunk
 from the same start in `student_steps` Euler steps (knowledge distillation of the ODE, Luhman and
-Luhman 2021; rectified-flow reflow trains on the same pairs). Pairs are drawn once, before training:
-states from the demonstrations and any `--extra-states` stores (states the policy visits), each with
-fresh start noises. The student's card records its step count (`sampler_steps`), so export, evaluation and the service
-run it with that many network evaluations.
+Luhman 2021; rectified-flow reflow trains on the same pairs). Pairs: states from the demonstrations and
+any `--extra-states` stores, each with a fresh start noise; the decision states of `--teacher-episodes`
+episodes the teacher plays; then, for each of `--rounds`, the decision states of episodes the student
+plays, each with the noise it played (DAgger: the teacher labels where the student goes), `--steps`
+more steps each. The student's card records its step count (`sampler_steps`), so export, evaluation
+and the service run it with that many network evaluations.
 """
 
 from __future__ import annotations
@@ -16,14 +19,18 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
+from pusht.spec import RESERVED_SEEDS
 from training.cli import build_parser, command_line, option
 
 PROG = "python -m training.distill"
 RESUMABLE_CHANGES = ("progress", "threads")
+CHOOSER_KEYS = ("outcome_dims", "outcome_candidates", "outcome_stretches")
+"""Architecture keys of an outcome chooser, which a student does not take (it samples one chunk)."""
 
 
 @dataclass
@@ -44,14 +51,31 @@ class DistillConfig:
     eval_episodes: int = option(200, "episodes of the final evaluation")
     eval_seed: int = option(400_000, "first evaluation episode seed (never a held-out one)")
     log_every: int = option(200, "write a log record every N steps")
+    teacher_episodes: int = option(0, "episodes the teacher plays first (from --round-seed); their decision states join the pairs")
+    rounds: int = option(0, "DAgger rounds after the first training: the student plays, the teacher labels, training goes on")
+    round_episodes: int = option(1000, "episodes the student plays in each round")
+    round_seed: int = option(23_000_000, "first episode seed of the teacher's and the rounds' episodes (training seeds)")
+    fixed_noise: int = option(-1, "if >= 0: the teacher labels every state from the one start noise of this seed (a deterministic "
+                                  "policy), and the student, its start noise scaled to 0, copies that policy")
+    pairs_from: str = option("", "a distillation run folder whose saved pairs (pairs.safetensors, same teacher) replace the "
+                                 "demonstration and teacher pairs")
+    outcome_weight: float = option(0.0, "weight of the teacher's outcome-model distance to the goal after the student's chunk, "
+                                        "beside the regression (a chooser teacher only)")
     seed: int = option(0, "seed of the pairs and of the batch order")
     threads: int = option(1, "torch intra-op threads")
     progress: bool = option(True, "show a tqdm progress bar on stderr")
 
     def __post_init__(self) -> None:
-        for name in ("teacher_steps", "student_steps", "pairs", "steps", "batch_size", "eval_episodes", "log_every", "threads"):
+        for name in ("teacher_steps", "student_steps", "pairs", "steps", "batch_size", "eval_episodes", "log_every", "threads", "round_episodes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("teacher_episodes", "rounds"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.round_seed in RESERVED_SEEDS:
+            raise ValueError(f"round_seed {self.round_seed} lies among the evaluation seeds {RESERVED_SEEDS.start}..{RESERVED_SEEDS.stop - 1}")
+        if not self.outcome_weight >= 0:
+            raise ValueError(f"outcome_weight must be >= 0, got {self.outcome_weight}")
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
 
@@ -79,14 +103,13 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def distill(cfg: DistillConfig):
-    """Draw the pairs, train the student, evaluate it, save `last`; returns the Run."""
-    from tqdm import tqdm
-
+    """Label the pairs, train the student (then DAgger rounds: play, label, train on), evaluate it, save `last`; returns the Run."""
     from training.checkpoint import git_commit, load_checkpoint, require_state_only, save_checkpoint
     from training.curves import plot_learning_curve
     from training.data import load_replay
+    from training.distill_data import PAIRS_FILE, Pairs, decision_pairs
     from training.evaluate import evaluate_policy
-    from training.policies import ActingPolicy, build_policy
+    from training.policies import ActingPolicy
     from training.run import Run
 
     torch.set_num_threads(cfg.threads)
@@ -95,55 +118,110 @@ def distill(cfg: DistillConfig):
     if card["kind"] != "flow":
         raise ValueError(f"{cfg.teacher} is a {card['kind']} checkpoint; only a flow has steps to distil")
     require_state_only(card, cfg.teacher, "distillation")
-    teacher.eval()
-    student = build_policy("flow", **card["architecture"])
-    student.load_state_dict(teacher.state_dict())
-    student.normalizer.set(teacher.normalizer)
+    if card.get("sampler_steps") not in (None, cfg.teacher_steps):
+        raise ValueError(f"{cfg.teacher} was itself distilled to sample in {card['sampler_steps']} steps; "
+                         f"give --teacher-steps {card['sampler_steps']} or distil its own teacher ({card.get('teacher')})")
+    if cfg.outcome_weight and teacher.outcome is None:
+        raise ValueError(f"--outcome-weight needs a teacher with an outcome chooser; {cfg.teacher} has none")
+    teacher.eval().requires_grad_(False)
+    student = student_of(teacher, noise_scale=0.0 if cfg.fixed_noise >= 0 else None)
     states = np.concatenate([load_replay(p).states for p in [cfg.data, *filter(None, cfg.extra_states.split(","))]])
     run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), may_change=RESUMABLE_CHANGES)
     try:
         generator = torch.Generator().manual_seed(cfg.seed)
-        rows = torch.randint(0, len(states), (cfg.pairs,), generator=generator)
-        s = teacher.normalizer.state(torch.as_tensor(states, dtype=torch.float32)[rows])
-        noise = torch.randn((cfg.pairs, student.horizon, student.action_dim), generator=generator)
-        with torch.no_grad():
-            target = torch.cat([teacher.sample_actions(s[i : i + 4096], noise[i : i + 4096], cfg.teacher_steps) for i in range(0, cfg.pairs, 4096)])
-        run.log({"type": "pairs", "step": 0, "pairs": cfg.pairs, "states": len(states), "elapsed_s": run.elapsed_s})
+        rows = torch.randint(0, len(states), (cfg.pairs,), generator=generator).numpy()
+        noise = torch.randn((cfg.pairs, student.horizon, student.action_dim), generator=generator).numpy()
+        pairs = Pairs(teacher, cfg.teacher, cfg.teacher_steps, cfg.progress, fixed_noise=cfg.fixed_noise)
+        if cfg.pairs_from:
+            pairs.load(Path(cfg.pairs_from) / PAIRS_FILE)
+        else:
+            pairs.add(states[rows], noise, "demonstrations")
+            if cfg.teacher_episodes:
+                pairs.add(*decision_pairs(ActingPolicy(teacher, cfg.teacher_steps), cfg.teacher_episodes, cfg.round_seed)[:2], "teacher")
+        run.log({"type": "pairs", "step": 0, "round": 0, "pairs": len(pairs), "elapsed_s": run.elapsed_s})
         optimizer = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
-        student.train()
-        bar = tqdm(total=cfg.steps, desc="distill", disable=not cfg.progress, file=sys.stderr)
-        running, start = 0.0, time.perf_counter()
-        for step in range(1, cfg.steps + 1):
-            for group in optimizer.param_groups:
-                group["lr"] = cfg.lr * 0.5 * (1 + np.cos(np.pi * (step - 1) / cfg.steps))
-            idx = torch.randint(0, cfg.pairs, (cfg.batch_size,), generator=generator)
-            loss = torch.nn.functional.mse_loss(student.sample_actions(s[idx], noise[idx], cfg.student_steps), target[idx])
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            running += float(loss.detach())
-            if step % cfg.log_every == 0:
-                run.log({"type": "train", "step": step, "loss": running / cfg.log_every, "ms_per_step": 1e3 * (time.perf_counter() - start) / step})
-                running = 0.0
-            bar.update(1)
-            if run.stop_requested:
-                raise ValueError(f"stopped by {run.stop_signal} at step {step}; distillation is short: start it again with another --name")
-        bar.close()
-        student.eval()
-        summary = evaluate_policy(ActingPolicy(student, num_steps=cfg.student_steps), episodes=cfg.eval_episodes,
-                                  seed=cfg.eval_seed)
-        evaluation = {"step": cfg.steps, **{k: v for k, v in summary.scores().items() if k != "wall_time_s"}}
-        run.log({"type": "eval", **evaluation, "seeds": summary.seeds})
-        plot_learning_curve(run.records, run.dir / "learning_curve.png")
+        total = cfg.steps * (cfg.rounds + 1)
         reproduce = {"distill": command_line(DistillConfig, PROG, cfg.to_dict(), always=("teacher", "name", "student_steps"))}
-        save_checkpoint(str(run.dir / "last"), student, name="flow", config=cfg.to_dict(), git_commit=git_commit(),
-                        steps=cfg.steps, wall_time_s=run.elapsed_s, evaluation=evaluation, finished=True, reproduce=reproduce,
-                        sampler_steps=cfg.student_steps, teacher=str(cfg.teacher))
-        run.finish(cfg.steps)
+        for round_ in range(cfg.rounds + 1):
+            if round_:
+                seed = cfg.round_seed + cfg.teacher_episodes + (round_ - 1) * cfg.round_episodes
+                visited, noise, scores = decision_pairs(ActingPolicy(student.eval(), cfg.student_steps), cfg.round_episodes, seed)
+                pairs.add(visited, noise, f"round {round_}")
+                run.log({"type": "round", "step": round_ * cfg.steps, "round": round_, "pairs": len(pairs),
+                         "elapsed_s": run.elapsed_s, **{f"played_{k}": v for k, v in scores.items()}})
+            _train(student, teacher, optimizer, pairs, run, cfg, generator, first=round_ * cfg.steps, total=total)
+            student.eval()
+            summary = evaluate_policy(ActingPolicy(student, num_steps=cfg.student_steps), episodes=cfg.eval_episodes, seed=cfg.eval_seed)
+            evaluation = {"step": (round_ + 1) * cfg.steps, **{k: v for k, v in summary.scores().items() if k != "wall_time_s"}}
+            run.log({"type": "eval", "round": round_, **evaluation})
+            pairs.save(run.dir / PAIRS_FILE)
+            finished = round_ == cfg.rounds
+            save_checkpoint(str(run.dir / ("last" if finished else f"round{round_}")), student, name="flow", config=cfg.to_dict(),
+                            git_commit=git_commit(), steps=(round_ + 1) * cfg.steps, wall_time_s=run.elapsed_s, evaluation=evaluation,
+                            finished=finished, reproduce=reproduce, sampler_steps=cfg.student_steps, teacher=str(cfg.teacher))
+        plot_learning_curve(run.records, run.dir / "learning_curve.png")
+        run.finish(total)
     finally:
         run.close()
-    print(f"done: {cfg.steps} steps in {run.elapsed_s:.0f} s; {summary.scores()}; outputs in {run.dir}", file=sys.stderr)
+    print(f"done: {total} steps in {run.elapsed_s:.0f} s; {summary.scores()}; outputs in {run.dir}", file=sys.stderr)
     return run
+
+
+def predicted_goal_distance(teacher: torch.nn.Module, state_n: torch.Tensor, chunk_n: torch.Tensor) -> torch.Tensor:
+    """[B]: where the teacher's outcome model predicts normalized chunks [B, H, A] leave the block, as its chooser scores it."""
+    from pusht.spec import ACTION_HIGH, ACTION_LOW
+    from training.outcome import goal_corner_distance
+
+    state = teacher.normalizer.env_state(state_n[:, : teacher.state_dim])
+    actions = torch.clamp(teacher.normalizer.actions(state, chunk_n), ACTION_LOW, ACTION_HIGH)
+    return goal_corner_distance(teacher.outcome.model(state, actions))
+
+
+def student_of(teacher: torch.nn.Module, noise_scale: float | None = None) -> torch.nn.Module:
+    """A plain flow with the teacher's flow weights and normalization (and `noise_scale` if given): an outcome chooser's
+    own parts stay behind."""
+    from training.policies import build_policy
+
+    arch = {k: v for k, v in teacher.architecture.items() if k not in CHOOSER_KEYS}
+    if noise_scale is not None:
+        arch["noise_scale"] = noise_scale
+    student = build_policy("flow", **arch)
+    student.load_state_dict({k: v for k, v in teacher.state_dict().items() if not k.startswith("outcome.")})
+    student.normalizer.set(teacher.normalizer)
+    return student
+
+
+def _train(student, teacher, optimizer, pairs, run, cfg: DistillConfig, generator: torch.Generator, first: int, total: int) -> None:
+    """`cfg.steps` optimizer steps from step `first` of a cosine schedule over `total`: the student's chunk in
+    `student_steps` Euler steps against the teacher's, mean squared error in normalized units (plus, with an
+    outcome weight, the teacher's predicted distance to the goal after the student's chunk)."""
+    from tqdm import tqdm
+
+    student.train()
+    running, running_outcome, start = 0.0, 0.0, time.perf_counter()
+    for step in tqdm(range(first + 1, first + cfg.steps + 1), desc="distill", disable=not cfg.progress, file=sys.stderr):
+        for group in optimizer.param_groups:
+            group["lr"] = cfg.lr * 0.5 * (1 + np.cos(np.pi * (step - 1) / total))
+        state_n, noise, target = pairs.batch(cfg.batch_size, generator)
+        chunk_n = student.sample_actions(state_n, noise, cfg.student_steps)
+        loss = torch.nn.functional.mse_loss(chunk_n, target)
+        running += float(loss.detach())
+        if cfg.outcome_weight:
+            outcome = predicted_goal_distance(teacher, state_n, chunk_n).mean()
+            running_outcome += float(outcome.detach())
+            loss = loss + cfg.outcome_weight * outcome
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        if step % cfg.log_every == 0:
+            record = {"type": "train", "step": step, "loss": running / cfg.log_every,
+                      "ms_per_step": 1e3 * (time.perf_counter() - start) / (step - first)}
+            if cfg.outcome_weight:
+                record["outcome_distance"] = running_outcome / cfg.log_every
+            run.log(record)
+            running, running_outcome = 0.0, 0.0
+        if run.stop_requested:
+            raise ValueError(f"stopped by {run.stop_signal} at step {step}; distillation is short: start it again with another --name")
 
 
 if __name__ == "__main__":
