@@ -83,6 +83,15 @@ class Card:
         file = (self.data["onnx"] or {}).get("file") or f"{self.path.stem}.onnx"
         return self.path.parent / Path(file).name
 
+    @property
+    def uses_noise(self) -> bool:
+        """Whether a flow's actions depend on its start noise: not where the card scales it to 0 (a deterministic student)
+        and nothing else reads it (steering, a selector or an outcome chooser map the noise itself)."""
+        arch = self.architecture
+        if self.kind != "flow" or any(arch.get(k) is not None for k in ("steering_dims", "selector_dims", "outcome_dims")):
+            return self.kind == "flow"
+        return float(arch.get("noise_scale", 1.0)) != 0.0
+
     def network_evaluations(self, num_steps: int | None = None) -> int:
         """Network evaluations per chunk: 1 for mse; a flow's step count, and with an outcome chooser over K candidates at
         S stretches K times that plus the K x S outcome-model passes."""

@@ -4,10 +4,10 @@
 reaches a policy), reads the body under a size limit and a deadline (413 / 408 before parsing),
 validates it with the strict pydantic request model straight from the JSON bytes (~2 us), runs it
 through the policy's batcher while watching for the client hanging up (its queued rows are then
-dropped), and serializes with orjson. `ActFastPath`, a plain ASGI middleware, hands `POST /act` to
-it before FastAPI's routing and dependency machinery (which costs about as much per request as a
+dropped), and serializes with orjson. `ActFastPath`, a plain ASGI wrapper around the whole app, hands `POST /act` to
+it before Starlette's middleware and FastAPI's routing (which cost about as much per request as a
 batched model call per state); the FastAPI route of the same handler documents it in the OpenAPI
-schema and serves it when the router is used without the middleware.
+schema and serves it when the router is used without the wrapper.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import asyncio
 import hmac
 import json
 import logging
+import time
 from typing import Any, Awaitable, Callable
 
 import numpy as np
@@ -24,6 +25,7 @@ from fastapi.responses import Response
 from pydantic import ValidationError
 
 from service.batching import Batcher, Overloaded
+from service.guard import refuse_large_headers
 from service.schemas import act_request_model
 from service.settings import Settings
 from service.state import ServiceState
@@ -169,26 +171,40 @@ async def _drop_when_gone(receive: Receive, future: asyncio.Future, batcher: Bat
 
 
 class ActFastPath:
-    """ASGI middleware answering `POST /act` straight from the ASGI messages, skipping FastAPI's routing.
+    """ASGI wrapper answering `POST /act` straight from the ASGI messages, before the app's middleware and routing.
 
-    Routing, dependency solving and response classes cost ~100+ us per request, about as much as a
-    batched model call per state; everything else goes on to the FastAPI app.
+    Starlette's error middleware, FastAPI's telemetry hooks, routing and dependency solving cost ~100+ us per request,
+    about as much as a batched model call per state; this keeps what /act needs of them (the header limit, the
+    request metrics, JSON for an unexpected failure) and hands everything else to the app.
     """
 
-    def __init__(self, app: Callable, handler: ActHandler) -> None:
+    def __init__(self, app: Callable, handler: ActHandler, metrics: Any, max_header_bytes: int) -> None:
         self.app = app
         self.handler = handler
+        self.metrics = metrics
+        self.max_header_bytes = max_header_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["path"] != "/act" or scope["method"] != "POST":
             await self.app(scope, receive, send)
             return
-        status, body, extra = await self.handler(scope["app"].state.service, scope, receive)
-        headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-        if extra:
-            headers.extend((k.lower().encode(), v.encode()) for k, v in extra.items())
-        await send({"type": "http.response.start", "status": status, "headers": headers})
-        await send({"type": "http.response.body", "body": body})
+        start = time.perf_counter()
+        status = 431
+        try:
+            if await refuse_large_headers(scope, send, self.max_header_bytes):
+                return
+            try:
+                status, body, extra = await self.handler(scope["app"].state.service, scope, receive)
+            except Exception as exc:  # our bug; the client still gets JSON
+                log.exception("POST /act failed")
+                status, body, extra = 500, json.dumps({"detail": f"internal error: {type(exc).__name__}"}).encode(), None
+            headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+            if extra:
+                headers.extend((k.lower().encode(), v.encode()) for k, v in extra.items())
+            await send({"type": "http.response.start", "status": status, "headers": headers})
+            await send({"type": "http.response.body", "body": body})
+        finally:
+            self.metrics.observe_request("/act", "POST", status, time.perf_counter() - start)
 
 
 def request_headers(scope: Scope, wanted: tuple[bytes, ...]) -> dict[bytes, str]:

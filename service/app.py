@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from contextlib import asynccontextmanager
-from typing import AsyncIterator
+from typing import AsyncIterator, Callable
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -86,7 +86,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             for batcher in service.batchers.values():
                 await asyncio.to_thread(batcher.close)
 
-    app = FastAPI(
+    app = _PolicyApp(
         title="Push-T policy service",
         version="0.1.0",
         description=(
@@ -116,12 +116,22 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # FastAPI's default handler echoes the input, which may hold NaN (not JSON-serializable).
         return json_error(422, cap_errors(exc.errors()))
 
-    # Added last = outermost: metrics see every request, including those the fast path answers.
-    app.add_middleware(ActFastPath, handler=handler)
+    app.fast_path = lambda stack: ActFastPath(stack, handler, metrics, settings.max_header_bytes)
+    # Added last = outermost: metrics see every request (the fast path records its own).
     app.add_middleware(HeaderLimit, max_bytes=settings.max_header_bytes)
     app.add_middleware(MetricsMiddleware, metrics=metrics, routes=ROUTES)
     app.add_middleware(QuietStartupFailure, problems=problems)
     return app
+
+
+class _PolicyApp(FastAPI):
+    """FastAPI with `fast_path` wrapped around its whole middleware stack: `POST /act` skips it (service.act.ActFastPath)."""
+
+    fast_path: Callable[[Callable], Callable] | None = None
+
+    def build_middleware_stack(self) -> Callable:
+        stack = super().build_middleware_stack()
+        return stack if self.fast_path is None else self.fast_path(stack)
 
 
 def _document_policy_names(app: FastAPI) -> None:

@@ -262,6 +262,8 @@ class Batcher:
         horizon, action_dim = self.policy.horizon, self.policy.action_dim
         if item.noise is not None and item.seed is None:  # the caller's own noise (the OIP `noise` input)
             return item.noise[start:stop]
+        if not self.policy.uses_noise:
+            return np.zeros((stop - start, horizon, action_dim), dtype=np.float32)
         if item.seeds is not None:
             return row_noise(item.seeds[start:stop], horizon, action_dim)
         if item.seed is not None:

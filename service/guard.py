@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from typing import Any, Awaitable, Callable
 
-__all__ = ["HeaderLimit", "QuietStartupFailure", "Refusal", "StartupProblem"]
+__all__ = ["HeaderLimit", "QuietStartupFailure", "Refusal", "StartupProblem", "refuse_large_headers"]
 
 Scope = dict[str, Any]
 Receive = Callable[[], Awaitable[dict[str, Any]]]
@@ -30,18 +30,23 @@ class HeaderLimit:
         self.max_bytes = max_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] == "http":
-            size = len(scope.get("raw_path") or b"") + len(scope.get("query_string") or b"")
-            for name, value in scope["headers"]:
-                size += len(name) + len(value) + 4
-            if size > self.max_bytes:
-                body = json.dumps({"detail": f"request headers of {size} bytes exceed the limit of {self.max_bytes} bytes"}).encode()
-                await send({"type": "http.response.start", "status": 431, "headers": [
-                    (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()), (b"connection", b"close"),
-                ]})
-                await send({"type": "http.response.body", "body": body})
-                return
-        await self.app(scope, receive, send)
+        if scope["type"] != "http" or not await refuse_large_headers(scope, send, self.max_bytes):
+            await self.app(scope, receive, send)
+
+
+async def refuse_large_headers(scope: Scope, send: Send, max_bytes: int) -> bool:
+    """Answer 431 (and close) if the request's path, query and headers add up to more than `max_bytes`; True if it did."""
+    size = len(scope.get("raw_path") or b"") + len(scope.get("query_string") or b"")
+    for name, value in scope["headers"]:
+        size += len(name) + len(value) + 4
+    if size <= max_bytes:
+        return False
+    body = json.dumps({"detail": f"request headers of {size} bytes exceed the limit of {max_bytes} bytes"}).encode()
+    await send({"type": "http.response.start", "status": 431, "headers": [
+        (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()), (b"connection", b"close"),
+    ]})
+    await send({"type": "http.response.body", "body": body})
+    return True
 
 
 class QuietStartupFailure:

@@ -42,6 +42,7 @@ class Metrics:
             "pusht_batch_requests", "requests merged into one model call", ["policy"], buckets=_ROW_BUCKETS, registry=self.registry
         )
         self._request_children: dict[tuple[str, str, int], tuple[Any, Any]] = {}
+        self._batch_children: dict[str, tuple[Any, Any]] = {}
 
     def observe_request(self, route: str, method: str, status: int, seconds: float) -> None:
         """Count one HTTP request and record its latency."""
@@ -56,8 +57,11 @@ class Metrics:
 
     def observe_batch(self, policy: str, rows: int, requests: int) -> None:
         """Record one model call of `rows` state rows merged from `requests` requests."""
-        self.batch_rows.labels(policy).observe(rows)
-        self.batch_requests.labels(policy).observe(requests)
+        children = self._batch_children.get(policy)
+        if children is None:
+            children = self._batch_children[policy] = (self.batch_rows.labels(policy), self.batch_requests.labels(policy))
+        children[0].observe(rows)
+        children[1].observe(requests)
 
     def render(self) -> bytes:
         """The Prometheus text exposition of every metric."""

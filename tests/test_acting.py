@@ -104,3 +104,21 @@ def test_a_graph_that_does_not_match_its_card_is_refused(tmp_path):
         acting.load_policy(tmp_path / "flow.onnx")
     with pytest.raises(CardError, match="checkpoint card not found"):
         acting.load_policy(tmp_path / "nothing.onnx")
+
+
+def test_a_flow_whose_start_noise_is_scaled_to_zero_draws_none(tmp_path):
+    from training.checkpoint import set_noise_scale
+
+    for suffix in (".json", ".safetensors"):
+        shutil.copyfile(REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / f"last{suffix}", tmp_path / f"flow{suffix}")
+    json_path = tmp_path / "flow.json"
+    json_path.write_text(json.dumps({**json.loads(json_path.read_text()), "name": "flow"}))
+    assert acting.load_policy(tmp_path / "flow").uses_noise
+    set_noise_scale(tmp_path / "flow", 0.0)
+    policy = acting.load_policy(tmp_path / "flow")
+    assert not policy.uses_noise and acting.load_policy(MODELS / "mse").uses_noise is False
+    seeded = policy.act(STATES, seeds=range(9))
+    np.testing.assert_array_equal(seeded, policy.act(STATES, noise=np.zeros((9, 12, 2), np.float32)))
+    np.testing.assert_array_equal(seeded, policy.act(STATES))  # no seed: the same, as nothing is drawn
+    with pytest.raises(ValueError, match="seeds has 2 entries for 9 states"):
+        policy.act(STATES, seeds=[1, 2])  # still checked
