@@ -58,13 +58,14 @@ def test_a_short_distillation_with_dagger_rounds_moves_the_student_toward_the_te
     np.testing.assert_allclose(got, want, atol=1e-3)
 
 
-def test_a_run_can_start_from_another_runs_pairs_and_weigh_the_teachers_outcome_model(tmp_path: Path) -> None:
+def test_a_run_can_start_from_another_runs_pairs_with_a_smaller_student_and_weigh_the_teachers_outcome_model(tmp_path: Path) -> None:
     first = distill(DistillConfig(teacher=str(TEACHER), name="a", out_dir=str(tmp_path), pairs=64, steps=4, batch_size=16,
                                   eval_episodes=1, log_every=2, progress=False, student_steps=2)).dir
     assert not (first / "round0.json").exists() and (first / PAIRS_FILE).is_file()  # no DAgger round: `last` only
     second = distill(DistillConfig(teacher=str(TEACHER), name="b", out_dir=str(tmp_path), pairs_from=str(first), steps=4,
-                                   batch_size=16, eval_episodes=1, log_every=2, progress=False, student_steps=2,
-                                   outcome_weight=1.0)).dir
+                                   batch_size=16, eval_episodes=1, log_every=2, progress=False, student_steps=1,
+                                   outcome_weight=1.0, student_hidden_dims="64,64")).dir
+    assert load_card(second / "last")["architecture"]["hidden_dims"] == [64, 64]  # a fresh, smaller student
     records = [json.loads(line) for line in (second / "log.jsonl").read_text().splitlines()]
     assert [r["pairs"] for r in records if r["type"] == "pairs"] == [64]
     assert all(r["outcome_distance"] > 0 for r in records if r["type"] == "train")
@@ -80,6 +81,8 @@ def test_a_run_can_start_from_another_runs_pairs_and_weigh_the_teachers_outcome_
 def test_distillation_settings_are_checked_before_any_work(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="outcome_weight must be >= 0"):
         DistillConfig(outcome_weight=-1)
+    with pytest.raises(ValueError, match="student_hidden_dims must be comma-separated positive widths"):
+        DistillConfig(student_hidden_dims="256,,256")
     with pytest.raises(ValueError, match="round_seed 300000 lies among the evaluation seeds"):
         DistillConfig(round_seed=300_000)
     plain = REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"

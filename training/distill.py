@@ -55,6 +55,8 @@ class DistillConfig:
     rounds: int = option(0, "DAgger rounds after the first training: the student plays, the teacher labels, training goes on")
     round_episodes: int = option(1000, "episodes the student plays in each round")
     round_seed: int = option(23_000_000, "first episode seed of the teacher's and the rounds' episodes (training seeds)")
+    student_hidden_dims: str = option("", "comma-separated hidden widths of a fresh student network (default: the teacher's "
+                                         "flow, weights included)")
     fixed_noise: int = option(-1, "if >= 0: the teacher labels every state from the one start noise of this seed (a deterministic "
                                   "policy), and the student, its start noise scaled to 0, copies that policy")
     pairs_from: str = option("", "a distillation run folder whose saved pairs (pairs.safetensors, same teacher) replace the "
@@ -74,6 +76,8 @@ class DistillConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.round_seed in RESERVED_SEEDS:
             raise ValueError(f"round_seed {self.round_seed} lies among the evaluation seeds {RESERVED_SEEDS.start}..{RESERVED_SEEDS.stop - 1}")
+        if self.student_hidden_dims and not all(w.strip().isdigit() and int(w) > 0 for w in self.student_hidden_dims.split(",")):
+            raise ValueError(f"student_hidden_dims must be comma-separated positive widths, got {self.student_hidden_dims!r}")
         if not self.outcome_weight >= 0:
             raise ValueError(f"outcome_weight must be >= 0, got {self.outcome_weight}")
         if not self.lr > 0:
@@ -124,7 +128,7 @@ def distill(cfg: DistillConfig):
     if cfg.outcome_weight and teacher.outcome is None:
         raise ValueError(f"--outcome-weight needs a teacher with an outcome chooser; {cfg.teacher} has none")
     teacher.eval().requires_grad_(False)
-    student = student_of(teacher, noise_scale=0.0 if cfg.fixed_noise >= 0 else None)
+    student = student_of(teacher, noise_scale=0.0 if cfg.fixed_noise >= 0 else None, hidden_dims=cfg.student_hidden_dims)
     states = np.concatenate([load_replay(p).states for p in [cfg.data, *filter(None, cfg.extra_states.split(","))]])
     run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), may_change=RESUMABLE_CHANGES)
     try:
@@ -177,16 +181,19 @@ def predicted_goal_distance(teacher: torch.nn.Module, state_n: torch.Tensor, chu
     return goal_corner_distance(teacher.outcome.model(state, actions))
 
 
-def student_of(teacher: torch.nn.Module, noise_scale: float | None = None) -> torch.nn.Module:
-    """A plain flow with the teacher's flow weights and normalization (and `noise_scale` if given): an outcome chooser's
-    own parts stay behind."""
+def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "") -> torch.nn.Module:
+    """A plain flow of the teacher's architecture and normalization (and `noise_scale` if given) with its flow's weights,
+    or with comma-separated `hidden_dims` a fresh network of those widths; an outcome chooser's own parts stay behind."""
     from training.policies import build_policy
 
     arch = {k: v for k, v in teacher.architecture.items() if k not in CHOOSER_KEYS}
     if noise_scale is not None:
         arch["noise_scale"] = noise_scale
+    if hidden_dims:
+        arch["hidden_dims"] = [int(width) for width in hidden_dims.split(",")]
     student = build_policy("flow", **arch)
-    student.load_state_dict({k: v for k, v in teacher.state_dict().items() if not k.startswith("outcome.")})
+    if not hidden_dims:
+        student.load_state_dict({k: v for k, v in teacher.state_dict().items() if not k.startswith("outcome.")})
     student.normalizer.set(teacher.normalizer)
     return student
 
