@@ -66,6 +66,7 @@ def test_a_run_can_start_from_another_runs_pairs_with_a_smaller_student_and_weig
                                    batch_size=16, eval_episodes=1, log_every=2, progress=False, student_steps=1,
                                    outcome_weight=1.0, student_hidden_dims="64,64")).dir
     assert load_card(second / "last")["architecture"]["hidden_dims"] == [64, 64]  # a fresh, smaller student
+    assert not (second / PAIRS_FILE).exists()  # it labelled nothing new
     records = [json.loads(line) for line in (second / "log.jsonl").read_text().splitlines()]
     assert [r["pairs"] for r in records if r["type"] == "pairs"] == [64]
     assert all(r["outcome_distance"] > 0 for r in records if r["type"] == "train")

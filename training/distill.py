@@ -158,7 +158,8 @@ def distill(cfg: DistillConfig):
             summary = evaluate_policy(ActingPolicy(student, num_steps=cfg.student_steps), episodes=cfg.eval_episodes, seed=cfg.eval_seed)
             evaluation = {"step": (round_ + 1) * cfg.steps, **{k: v for k, v in summary.scores().items() if k != "wall_time_s"}}
             run.log({"type": "eval", "round": round_, **evaluation})
-            pairs.save(run.dir / PAIRS_FILE)
+            if round_ or not cfg.pairs_from:  # new labels to keep
+                pairs.save(run.dir / PAIRS_FILE)
             finished = round_ == cfg.rounds
             save_checkpoint(str(run.dir / ("last" if finished else f"round{round_}")), student, name="flow", config=cfg.to_dict(),
                             git_commit=git_commit(), steps=(round_ + 1) * cfg.steps, wall_time_s=run.elapsed_s, evaluation=evaluation,
