@@ -67,6 +67,13 @@ def test_a_run_can_start_from_another_runs_pairs_with_a_smaller_student_and_weig
                                    outcome_weight=1.0, student_hidden_dims="64,64")).dir
     assert load_card(second / "last")["architecture"]["hidden_dims"] == [64, 64]  # a fresh, smaller student
     assert not (second / PAIRS_FILE).exists()  # it labelled nothing new
+    # a student goes on from its own checkpoint (more rounds), not from one of another architecture
+    more = DistillConfig(teacher=str(TEACHER), name="c", out_dir=str(tmp_path), pairs_from=str(first), init=str(second / "last"),
+                         student_hidden_dims="64,64", student_steps=1, steps=2, batch_size=16, eval_episodes=1, progress=False)
+    assert load_card(distill(more).dir / "last")["steps"] == 2
+    with pytest.raises(ValueError, match="is not a student of .* with this run's architecture"):
+        distill(DistillConfig(**{**more.to_dict(), "name": "d", "student_hidden_dims": ""}))
+    assert not (tmp_path / "d").exists()
     records = [json.loads(line) for line in (second / "log.jsonl").read_text().splitlines()]
     assert [r["pairs"] for r in records if r["type"] == "pairs"] == [64]
     assert all(r["outcome_distance"] > 0 for r in records if r["type"] == "train")

@@ -55,6 +55,8 @@ class DistillConfig:
     rounds: int = option(0, "DAgger rounds after the first training: the student plays, the teacher labels, training goes on")
     round_episodes: int = option(1000, "episodes the student plays in each round")
     round_seed: int = option(23_000_000, "first episode seed of the teacher's and the rounds' episodes (training seeds)")
+    init: str = option("", "start the student from this checkpoint stem (a student of the same teacher, e.g. a run's last, "
+                           "to go on with more rounds) instead of the teacher's flow")
     student_hidden_dims: str = option("", "comma-separated hidden widths of a fresh student network (default: the teacher's "
                                          "flow, weights included)")
     fixed_noise: int = option(-1, "if >= 0: the teacher labels every state from the one start noise of this seed (a deterministic "
@@ -129,6 +131,12 @@ def distill(cfg: DistillConfig):
         raise ValueError(f"--outcome-weight needs a teacher with an outcome chooser; {cfg.teacher} has none")
     teacher.eval().requires_grad_(False)
     student = student_of(teacher, noise_scale=0.0 if cfg.fixed_noise >= 0 else None, hidden_dims=cfg.student_hidden_dims)
+    if cfg.init:
+        start, start_card = load_checkpoint(cfg.init)
+        if start_card.get("teacher") != cfg.teacher or start.architecture != student.architecture:
+            raise ValueError(f"--init {cfg.init} is not a student of {cfg.teacher} with this run's architecture "
+                             f"(its teacher: {start_card.get('teacher')})")
+        student = start
     states = np.concatenate([load_replay(p).states for p in [cfg.data, *filter(None, cfg.extra_states.split(","))]])
     run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), may_change=RESUMABLE_CHANGES)
     try:
