@@ -64,7 +64,7 @@ def test_a_run_can_start_from_another_runs_pairs_with_a_smaller_student_and_weig
     assert not (first / "round0.json").exists() and (first / PAIRS_FILE).is_file()  # no DAgger round: `last` only
     second = distill(DistillConfig(teacher=str(TEACHER), name="b", out_dir=str(tmp_path), pairs_from=str(first), steps=4,
                                    batch_size=16, eval_episodes=1, log_every=2, progress=False, student_steps=1,
-                                   outcome_weight=1.0, student_hidden_dims="64,64")).dir
+                                   outcome_weight=1.0, outcome_root=True, student_hidden_dims="64,64")).dir
     assert load_card(second / "last")["architecture"]["hidden_dims"] == [64, 64]  # a fresh, smaller student
     assert not (second / PAIRS_FILE).exists()  # it labelled nothing new
     # a student goes on from its own checkpoint (more rounds), not from one of another architecture

@@ -65,6 +65,7 @@ class DistillConfig:
                                  "demonstration and teacher pairs")
     outcome_weight: float = option(0.0, "weight of the teacher's outcome-model distance to the goal after the student's chunk, "
                                         "beside the regression (a chooser teacher only)")
+    outcome_root: bool = option(False, "weigh the root of that (mean squared corner) distance: steeper near the goal")
     seed: int = option(0, "seed of the pairs and of the batch order")
     threads: int = option(1, "torch intra-op threads")
     progress: bool = option(True, "show a tqdm progress bar on stderr")
@@ -223,7 +224,8 @@ def _train(student, teacher, optimizer, pairs, run, cfg: DistillConfig, generato
         loss = torch.nn.functional.mse_loss(chunk_n, target)
         running += float(loss.detach())
         if cfg.outcome_weight:
-            outcome = predicted_goal_distance(teacher, state_n, chunk_n).mean()
+            distance = predicted_goal_distance(teacher, state_n, chunk_n)
+            outcome = (distance.clamp_min(1e-6).sqrt() if cfg.outcome_root else distance).mean()
             running_outcome += float(outcome.detach())
             loss = loss + cfg.outcome_weight * outcome
         optimizer.zero_grad(set_to_none=True)
