@@ -141,12 +141,16 @@ def load_policy(model: str | Path, backend: str | None = None, threads: int = 1,
     return policy
 
 
-def rollout_act(policy: Policy, noise_scale: float = 1.0):
-    """The rollout runner's act function (states, one request seed per row) -> actions: row i's noise from seeds[i]."""
+def rollout_act(policy: Policy, noise_scale: float = 1.0, fixed_noise: int | None = None):
+    """The rollout runner's act function (states, one request seed per row) -> actions: row i's noise from seeds[i], or
+    with `fixed_noise` every row's from that one seed (a flow as a deterministic map of the state)."""
     if not 0 <= noise_scale <= 10:
         raise ValueError(f"noise_scale must be in [0, 10], got {noise_scale}")
+    start = None if fixed_noise is None else row_noise([fixed_noise], policy.horizon, policy.action_dim)
 
     def act(states: np.ndarray, seeds: list[int], prev_states: np.ndarray | None = None) -> np.ndarray:
+        if start is not None:
+            return policy.act(states, prev_states, noise=np.repeat(start, len(states), axis=0), noise_scale=noise_scale)
         return policy.act(states, prev_states, seeds=seeds, noise_scale=noise_scale)
 
     return act

@@ -122,3 +122,13 @@ def test_a_flow_whose_start_noise_is_scaled_to_zero_draws_none(tmp_path):
     np.testing.assert_array_equal(seeded, policy.act(STATES))  # no seed: the same, as nothing is drawn
     with pytest.raises(ValueError, match="seeds has 2 entries for 9 states"):
         policy.act(STATES, seeds=[1, 2])  # still checked
+
+
+def test_a_rollout_with_a_fixed_noise_gives_every_row_that_seeds_noise():
+    policy = acting.load_policy(MODELS / "flow.onnx")
+    fixed = acting.rollout_act(policy, fixed_noise=12345)
+    states = np.repeat(STATES[:1], 4, axis=0)
+    out = fixed(states, [1, 2, 3, 4])
+    np.testing.assert_array_equal(out, np.repeat(policy.act(states[:1], seeds=[12345]), 4, axis=0))
+    seeded = acting.rollout_act(policy)(states, [1, 2, 3, 4])
+    assert len({row.tobytes() for row in seeded}) > 1  # per-row seeds otherwise

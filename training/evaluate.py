@@ -49,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num-steps", type=int, default=None,
                         help="flow: Euler steps of sampling (default: the card's count: 10, or a distilled flow's own; an ONNX file has its count fixed)")
     parser.add_argument("--noise-scale", type=float, default=1.0, help="flow: multiply the start noise by this (on top of the model's own noise_scale)")
+    parser.add_argument("--fixed-noise", type=int, default=None, metavar="SEED",
+                        help="flow: every decision starts from the noise of this one seed (the policy as a deterministic map)")
     parser.add_argument("--max-steps", type=int, default=300, help="episode step limit")
     parser.add_argument("--out", default=None, metavar="FILE", help="write one JSON line per episode (seed, max_reward, success, length, policy, card) to FILE")
     parser.add_argument("--gif", default=None, metavar="FILE", help="write the first episode as an animated GIF (real speed, step/coverage/success caption) to FILE")
@@ -68,6 +70,7 @@ def main(argv: list[str] | None = None) -> int:
             action_horizon=args.action_horizon,
             max_steps=args.max_steps,
             noise_scale=args.noise_scale,
+            fixed_noise=args.fixed_noise,
             progress=not args.no_progress,
             record_frames=gif is not None,
         )
@@ -104,19 +107,20 @@ def evaluate_policy(
     progress: bool | Callable[[int, int], None] = False,
     record_frames: bool = False,
     record_trajectories: bool = False,
+    fixed_noise: int | None = None,
 ) -> RolloutSummary:
     """Roll out `policy` (an `acting.Policy`, or a torch ActingPolicy module) on seeds seed..seed+episodes-1.
 
     `num_envs=None`: all episodes at once. `action_horizon=None`: the policy's whole chunk. A flow samples in the
     policy's own step count (`load_policy(..., num_steps=)`; a module's `num_steps`). Each row's flow noise comes
-    from its own seed (`row_noise`) times `noise_scale`; recorded frames are captioned.
+    from its own seed (`row_noise`), or every row's from `fixed_noise`, times `noise_scale`; recorded frames are captioned.
     """
     policy = as_policy(policy)
     if action_horizon is None:
         action_horizon = policy.horizon
     elif isinstance(action_horizon, int) and action_horizon > policy.horizon:
         raise ValueError(f"action_horizon {action_horizon} exceeds the policy's chunk of {policy.horizon} actions")
-    act = rollout_act(policy, noise_scale)
+    act = rollout_act(policy, noise_scale, fixed_noise)
     seeds = episode_seeds(seed, episodes)
     if progress is True:
         progress = _tqdm_progress(len(seeds))
