@@ -189,9 +189,10 @@ class ActFastPath:
             await self.app(scope, receive, send)
             return
         start = time.perf_counter()
-        status = 431
+        status = 500  # until an answer is sent
         try:
             if await refuse_large_headers(scope, send, self.max_header_bytes):
+                status = 431
                 return
             try:
                 status, body, extra = await self.handler(scope["app"].state.service, scope, receive)

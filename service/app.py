@@ -121,17 +121,31 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(HeaderLimit, max_bytes=settings.max_header_bytes)
     app.add_middleware(MetricsMiddleware, metrics=metrics, routes=ROUTES)
     app.add_middleware(QuietStartupFailure, problems=problems)
+    app.own_middleware = list(app.user_middleware)
     return app
 
 
 class _PolicyApp(FastAPI):
-    """FastAPI with `fast_path` wrapped around its whole middleware stack: `POST /act` skips it (service.act.ActFastPath)."""
+    """FastAPI with `fast_path` wrapped around its own middleware stack: `POST /act` skips it (service.act.ActFastPath).
+
+    Middleware added after `create_app` (`app.add_middleware`, e.g. service.ray_serve's replica header) wraps the
+    whole app, the fast path included, as a user of FastAPI expects."""
 
     fast_path: Callable[[Callable], Callable] | None = None
+    own_middleware: list = []
 
     def build_middleware_stack(self) -> Callable:
-        stack = super().build_middleware_stack()
-        return stack if self.fast_path is None else self.fast_path(stack)
+        added, own = self.user_middleware, self.own_middleware
+        self.user_middleware = [m for m in added if any(m is o for o in own)]
+        try:
+            app = super().build_middleware_stack()
+        finally:
+            self.user_middleware = added
+        if self.fast_path is not None:
+            app = self.fast_path(app)
+        for cls, args, kwargs in reversed([m for m in added if not any(m is o for o in own)]):
+            app = cls(app, *args, **kwargs)
+        return app
 
 
 def _document_policy_names(app: FastAPI) -> None:
