@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def distill(cfg: DistillConfig):
     """Label the pairs, train the student (then DAgger rounds: play, label, train on), evaluate it, save `last`; returns the Run."""
-    from training.checkpoint import git_commit, load_checkpoint, require_state_only, save_checkpoint
+    from training.checkpoint import git_commit, save_checkpoint
     from training.curves import plot_learning_curve
     from training.data import load_replay
     from training.distill_data import PAIRS_FILE, Pairs, decision_pairs
@@ -121,27 +121,12 @@ def distill(cfg: DistillConfig):
 
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    teacher, card = load_checkpoint(cfg.teacher)
-    if card["kind"] != "flow":
-        raise ValueError(f"{cfg.teacher} is a {card['kind']} checkpoint; only a flow has steps to distil")
-    require_state_only(card, cfg.teacher, "distillation")
-    if card.get("sampler_steps") not in (None, cfg.teacher_steps):
-        raise ValueError(f"{cfg.teacher} was itself distilled to sample in {card['sampler_steps']} steps; "
-                         f"give --teacher-steps {card['sampler_steps']} or distil its own teacher ({card.get('teacher')})")
-    if cfg.outcome_weight and teacher.outcome is None:
-        raise ValueError(f"--outcome-weight needs a teacher with an outcome chooser; {cfg.teacher} has none")
-    teacher.eval().requires_grad_(False)
-    student = student_of(teacher, noise_scale=0.0 if cfg.fixed_noise >= 0 else None, hidden_dims=cfg.student_hidden_dims)
-    if cfg.init:
-        start, start_card = load_checkpoint(cfg.init)
-        if start_card.get("teacher") != cfg.teacher or start.architecture != student.architecture:
-            raise ValueError(f"--init {cfg.init} is not a student of {cfg.teacher} with this run's architecture "
-                             f"(its teacher: {start_card.get('teacher')})")
-        student = start
-    states = np.concatenate([load_replay(p).states for p in [cfg.data, *filter(None, cfg.extra_states.split(","))]])
+    teacher, student = _teacher_and_student(cfg)
     run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), may_change=RESUMABLE_CHANGES)
     try:
         generator = torch.Generator().manual_seed(cfg.seed)
+        # drawn even when the pairs come from another run: the generator's later draws (the batch order) stay as recorded
+        states = np.concatenate([load_replay(p).states for p in [cfg.data, *filter(None, cfg.extra_states.split(","))]])
         rows = torch.randint(0, len(states), (cfg.pairs,), generator=generator).numpy()
         noise = torch.randn((cfg.pairs, student.horizon, student.action_dim), generator=generator).numpy()
         pairs = Pairs(teacher, cfg.teacher, cfg.teacher_steps, cfg.progress, fixed_noise=cfg.fixed_noise)
@@ -179,6 +164,30 @@ def distill(cfg: DistillConfig):
         run.close()
     print(f"done: {total} steps in {run.elapsed_s:.0f} s; {summary.scores()}; outputs in {run.dir}", file=sys.stderr)
     return run
+
+
+def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.Module]:
+    """The teacher (frozen) and the student to train, checked against each other before any work."""
+    from training.checkpoint import load_checkpoint, require_state_only
+
+    teacher, card = load_checkpoint(cfg.teacher)
+    if card["kind"] != "flow":
+        raise ValueError(f"{cfg.teacher} is a {card['kind']} checkpoint; only a flow has steps to distil")
+    require_state_only(card, cfg.teacher, "distillation")
+    if card.get("sampler_steps") not in (None, cfg.teacher_steps):
+        raise ValueError(f"{cfg.teacher} was itself distilled to sample in {card['sampler_steps']} steps; "
+                         f"give --teacher-steps {card['sampler_steps']} or distil its own teacher ({card.get('teacher')})")
+    if cfg.outcome_weight and teacher.outcome is None:
+        raise ValueError(f"--outcome-weight needs a teacher with an outcome chooser; {cfg.teacher} has none")
+    teacher.eval().requires_grad_(False)
+    student = student_of(teacher, noise_scale=0.0 if cfg.fixed_noise >= 0 else None, hidden_dims=cfg.student_hidden_dims)
+    if cfg.init:
+        start, start_card = load_checkpoint(cfg.init)
+        if start_card.get("teacher") != cfg.teacher or start.architecture != student.architecture:
+            raise ValueError(f"--init {cfg.init} is not a student of {cfg.teacher} with this run's architecture "
+                             f"(its teacher: {start_card.get('teacher')})")
+        student = start
+    return teacher, student
 
 
 def predicted_goal_distance(teacher: torch.nn.Module, state_n: torch.Tensor, chunk_n: torch.Tensor) -> torch.Tensor:
