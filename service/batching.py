@@ -249,8 +249,8 @@ class Batcher:
             states = item.states[start:stop]
         else:
             states = np.concatenate([item.states[start:stop] for item, start, stop in batch])
-        noise = None
-        if policy.kind == "flow":
+        noise = None  # a flow that uses no noise gets zeros from `act` itself
+        if policy.kind == "flow" and policy.uses_noise:
             parts = [self._noise(*part) for part in batch]
             noise = parts[0] if len(parts) == 1 else np.concatenate(parts)
         actions = policy.act(states, noise=noise, num_steps=batch[0][0].num_steps)
@@ -262,8 +262,6 @@ class Batcher:
         horizon, action_dim = self.policy.horizon, self.policy.action_dim
         if item.noise is not None and item.seed is None:  # the caller's own noise (the OIP `noise` input)
             return item.noise[start:stop]
-        if not self.policy.uses_noise:
-            return np.zeros((stop - start, horizon, action_dim), dtype=np.float32)
         if item.seeds is not None:
             return row_noise(item.seeds[start:stop], horizon, action_dim)
         if item.seed is not None:

@@ -193,11 +193,9 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
 def predicted_goal_distance(teacher: torch.nn.Module, state_n: torch.Tensor, chunk_n: torch.Tensor) -> torch.Tensor:
     """[B]: where the teacher's outcome model predicts normalized chunks [B, H, A] leave the block, as its chooser scores it."""
     from pusht.spec import ACTION_HIGH, ACTION_LOW
-    from training.outcome import goal_corner_distance
 
     state = teacher.normalizer.env_state(state_n[:, : teacher.state_dim])
-    actions = torch.clamp(teacher.normalizer.actions(state, chunk_n), ACTION_LOW, ACTION_HIGH)
-    return goal_corner_distance(teacher.outcome.model(state, actions))
+    return teacher.outcome.goal_distance(state, torch.clamp(teacher.normalizer.actions(state, chunk_n), ACTION_LOW, ACTION_HIGH))
 
 
 def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "") -> torch.nn.Module:

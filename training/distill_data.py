@@ -42,8 +42,9 @@ class Pairs:
         print(f"labelling {len(states)} states of the {source} with {self.teacher_name}", file=sys.stderr)
         if self.fixed_noise >= 0:
             noise = np.broadcast_to(chunk_noise(self.fixed_noise, 1, *noise.shape[1:]), noise.shape).copy()
-        targets = teacher_chunks(self.teacher, states, noise, self.teacher_steps, self.progress)
-        self.parts.append((self.teacher.policy_state(torch.as_tensor(states)), torch.as_tensor(noise), targets))
+        state_n = self.teacher.policy_state(torch.as_tensor(states))
+        noise = torch.as_tensor(noise)
+        self.parts.append((state_n, noise, teacher_chunks(self.teacher, state_n, noise, self.teacher_steps, self.progress)))
 
     def batch(self, size: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """A uniform random batch of the triples."""
@@ -91,12 +92,11 @@ def decision_pairs(module: torch.nn.Module, episodes: int, seed: int, num_envs: 
 
 
 @torch.no_grad()
-def teacher_chunks(teacher: torch.nn.Module, states: np.ndarray, noise: np.ndarray, num_steps: int, progress: bool = False) -> torch.Tensor:
-    """The teacher's normalized chunks [N, H, A] for env-unit states [N, S] and standard-normal noises [N, H, A]."""
+def teacher_chunks(teacher: torch.nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int, progress: bool = False) -> torch.Tensor:
+    """The teacher's normalized chunks [N, H, A] for its network's inputs `state_n` [N, S'] and standard-normal noises [N, H, A]."""
     from tqdm import tqdm
 
     out = []
-    for i in tqdm(range(0, len(states), LABEL_BATCH), desc="label", disable=not progress, file=sys.stderr):
-        s = teacher.policy_state(torch.as_tensor(states[i : i + LABEL_BATCH]))
-        out.append(teacher.sample_actions(s, torch.as_tensor(noise[i : i + LABEL_BATCH]), num_steps))
+    for i in tqdm(range(0, len(state_n), LABEL_BATCH), desc="label", disable=not progress, file=sys.stderr):
+        out.append(teacher.sample_actions(state_n[i : i + LABEL_BATCH], noise[i : i + LABEL_BATCH], num_steps))
     return torch.cat(out)

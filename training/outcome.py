@@ -123,11 +123,15 @@ class OutcomeSelector(nn.Module):
         index = self.choose(_env_state(flow, state_n), actions).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
         return torch.gather(chunks_n, 1, index).squeeze(1)
 
+    def goal_distance(self, state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
+        """[B]: how far (`goal_corner_distance`) the model predicts env-unit chunks [B, H, A] leave the block from states [B, S]."""
+        return goal_corner_distance(self.model(state, chunk))
+
     def choose(self, state: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
         """Index [B] of the chunk among [B, K * S, H, A] (env units) whose predicted end pose is closest to the goal (0 on a near tie)."""
         k = self.choices
         states = state.unsqueeze(1).expand(-1, k, -1).reshape(-1, state.shape[1])
-        distance = goal_corner_distance(self.model(states, chunks.reshape(-1, *self.chunk_shape))).reshape(-1, k)
+        distance = self.goal_distance(states, chunks.reshape(-1, *self.chunk_shape)).reshape(-1, k)
         best = distance.argmin(dim=1)
         # Chunks that do not reach the block tie up to float noise, and float noise must not choose (ONNX Runtime and
         # torch round differently): unless a candidate is clearly better, the flow's own sample (candidate 0) plays.
