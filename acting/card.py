@@ -71,9 +71,15 @@ class Card:
         return self.data.get("sampler_steps")
 
     @property
+    def one_pass(self) -> bool:
+        """Whether a flow decides in one network pass (a one-pass chooser, `onepass_dims`): it has no Euler steps."""
+        return self.kind == "flow" and self.architecture.get("onepass_dims") is not None
+
+    @property
     def num_steps(self) -> int | None:
-        """Flow steps a chunk takes by default (the exported graph's, else the distilled count, else 10); None for mse."""
-        if self.kind != "flow":
+        """Flow steps a chunk takes by default (the exported graph's, else the distilled count, else 10); None for mse and
+        a one-pass flow."""
+        if self.kind != "flow" or self.one_pass:
             return None
         return (self.data["onnx"] or {}).get("num_steps") or self.sampler_steps or DEFAULT_NUM_STEPS
 
@@ -86,16 +92,19 @@ class Card:
     @property
     def uses_noise(self) -> bool:
         """Whether a flow's actions depend on its start noise: not where the card scales it to 0 (a deterministic student)
-        and nothing else reads it (steering, a selector or an outcome chooser map the noise itself)."""
+        and nothing else reads it (steering, a selector or an outcome chooser map the noise itself); a one-pass flow only with
+        a choice noise."""
         arch = self.architecture
+        if self.one_pass:
+            return float(arch.get("choice_noise", 0.0)) != 0.0
         if self.kind != "flow" or any(arch.get(k) is not None for k in ("steering_dims", "selector_dims", "outcome_dims")):
             return self.kind == "flow"
         return float(arch.get("noise_scale", 1.0)) != 0.0
 
     def network_evaluations(self, num_steps: int | None = None) -> int:
         """Network evaluations per chunk: 1 for mse; a flow's step count, and with an outcome chooser over K candidates at
-        S stretches K times that plus the K x S outcome-model passes."""
-        if self.kind != "flow":
+        S stretches K times that plus the K x S outcome-model passes; 1 for a one-pass flow."""
+        if self.kind != "flow" or self.one_pass:
             return 1
         steps = num_steps or self.num_steps
         if self.architecture.get("outcome_dims") is None:

@@ -143,7 +143,7 @@ def test_outcome_keys_are_validated() -> None:
         build_policy("flow", outcome_dims=[0])
     with pytest.raises(ValueError, match="outcome_candidates"):
         build_policy("flow", outcome_dims=[8], outcome_candidates=0)
-    with pytest.raises(ValueError, match="one of steering_dims, selector_dims and outcome_dims"):
+    with pytest.raises(ValueError, match="one of steering_dims, selector_dims, outcome_dims and onepass_dims"):
         build_policy("flow", outcome_dims=[8], steering_dims=[8])
     for bad in ([1.5, 1.0], [], [1.0, 0.0], [1.0, 5.0], "1"):
         with pytest.raises(ValueError, match="outcome_stretches"):

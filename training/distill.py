@@ -12,6 +12,10 @@ episodes the teacher plays; then, for each of `--rounds`, the decision states of
 plays, each with the noise it played (DAgger: the teacher labels where the student goes), `--steps`
 more steps each. The student's card records its step count (`sampler_steps`), so export, evaluation
 and the service run it with that many network evaluations.
+
+`--student one-pass` distils an outcome chooser from one fixed start noise (`--fixed-noise`) into
+`training.onepass.OnePassChooser`: one network pass regresses all the chooser's candidates and their
+scores, and the choice among them stays an exact argmin (no steps; the card says `onepass_dims`).
 """
 
 from __future__ import annotations
@@ -30,7 +34,10 @@ from training.cli import build_parser, command_line, option
 PROG = "python -m training.distill"
 RESUMABLE_CHANGES = ("progress", "threads")
 CHOOSER_KEYS = ("outcome_dims", "outcome_candidates", "outcome_stretches")
-"""Architecture keys of an outcome chooser, which a student does not take (it samples one chunk)."""
+"""Architecture keys of an outcome chooser, which a flow student does not take (it samples one chunk); a one-pass student
+keeps the candidates and stretches."""
+STUDENTS = ("flow", "one-pass")
+DEFAULT_ONEPASS_DIMS = "512,512,512,512"
 
 
 @dataclass
@@ -39,7 +46,9 @@ class DistillConfig:
 
     teacher: str = option("models/flow", "flow checkpoint stem to distil (its noise_scale and steps define the map)")
     teacher_steps: int = option(10, "Euler steps of the teacher's sampler")
-    student_steps: int = option(1, "Euler steps (network evaluations) of the student")
+    student: str = option("flow", "flow: a plain flow sampling in --student-steps Euler steps; one-pass: an outcome chooser's "
+                                  "candidates and scores in one network pass (needs --fixed-noise)", choices=STUDENTS)
+    student_steps: int = option(1, "Euler steps (network evaluations) of a flow student")
     name: str = option("flow-distill", "run name; outputs go to OUT_DIR/NAME")
     out_dir: str = option("runs", "parent folder of run folders")
     data: str = option("data/pusht_lowdim.zarr", "demonstrations whose states are distilled")
@@ -58,11 +67,13 @@ class DistillConfig:
     init: str = option("", "start the student from this checkpoint stem (a student of the same teacher, e.g. a run's last, "
                            "to go on with more rounds) instead of the teacher's flow")
     student_hidden_dims: str = option("", "comma-separated hidden widths of a fresh student network (default: the teacher's "
-                                         "flow, weights included)")
+                                         f"flow, weights included; a one-pass student's: {DEFAULT_ONEPASS_DIMS})")
     fixed_noise: int = option(-1, "if >= 0: the teacher labels every state from the one start noise of this seed (a deterministic "
                                   "policy), and the student, its start noise scaled to 0, copies that policy")
     pairs_from: str = option("", "a distillation run folder whose saved pairs (pairs.safetensors, same teacher) replace the "
                                  "demonstration and teacher pairs")
+    states_from: str = option("", "a distillation run folder whose saved pairs' states (pairs.safetensors, any labels) this run's "
+                                  "teacher labels anew; they replace the demonstration and teacher pairs")
     outcome_weight: float = option(0.0, "weight of the teacher's outcome-model distance to the goal after the student's chunk, "
                                         "beside the regression (a chooser teacher only)")
     outcome_root: bool = option(False, "weigh the root of that (mean squared corner) distance: steeper near the goal")
@@ -83,6 +94,13 @@ class DistillConfig:
             raise ValueError(f"student_hidden_dims must be comma-separated positive widths, got {self.student_hidden_dims!r}")
         if not self.outcome_weight >= 0:
             raise ValueError(f"outcome_weight must be >= 0, got {self.outcome_weight}")
+        if self.student not in STUDENTS:
+            raise ValueError(f"student must be one of {STUDENTS}, got {self.student!r}")
+        if self.pairs_from and self.states_from:
+            raise ValueError("give --pairs-from (labelled pairs) or --states-from (states to label), not both")
+        if self.student == "one-pass" and (self.fixed_noise < 0 or self.outcome_weight):
+            raise ValueError("a one-pass student learns a chooser from one fixed start noise: give --fixed-noise SEED "
+                             "(and no --outcome-weight: it learns the chooser's own scores)")
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
 
@@ -129,9 +147,11 @@ def distill(cfg: DistillConfig):
         states = np.concatenate([load_replay(p).states for p in [cfg.data, *filter(None, cfg.extra_states.split(","))]])
         rows = torch.randint(0, len(states), (cfg.pairs,), generator=generator).numpy()
         noise = torch.randn((cfg.pairs, student.horizon, student.action_dim), generator=generator).numpy()
-        pairs = Pairs(teacher, cfg.teacher, cfg.teacher_steps, cfg.progress, fixed_noise=cfg.fixed_noise)
+        pairs = Pairs(teacher, cfg.teacher, cfg.teacher_steps, cfg.progress, fixed_noise=cfg.fixed_noise, choices=cfg.student == "one-pass")
         if cfg.pairs_from:
             pairs.load(Path(cfg.pairs_from) / PAIRS_FILE)
+        elif cfg.states_from:
+            pairs.relabel(Path(cfg.states_from) / PAIRS_FILE)
         else:
             pairs.add(states[rows], noise, "demonstrations")
             if cfg.teacher_episodes:
@@ -140,6 +160,7 @@ def distill(cfg: DistillConfig):
         optimizer = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
         total = cfg.steps * (cfg.rounds + 1)
         reproduce = {"distill": command_line(DistillConfig, PROG, cfg.to_dict(), always=("teacher", "name", "student_steps"))}
+        sampler_steps = cfg.student_steps if cfg.student == "flow" else None  # a one-pass student has no steps
         for round_ in range(cfg.rounds + 1):
             if round_:
                 seed = cfg.round_seed + cfg.teacher_episodes + (round_ - 1) * cfg.round_episodes
@@ -157,7 +178,7 @@ def distill(cfg: DistillConfig):
             finished = round_ == cfg.rounds
             save_checkpoint(str(run.dir / ("last" if finished else f"round{round_}")), student, name="flow", config=cfg.to_dict(),
                             git_commit=git_commit(), steps=(round_ + 1) * cfg.steps, wall_time_s=run.elapsed_s, evaluation=evaluation,
-                            finished=finished, reproduce=reproduce, sampler_steps=cfg.student_steps, teacher=str(cfg.teacher))
+                            finished=finished, reproduce=reproduce, sampler_steps=sampler_steps, teacher=str(cfg.teacher))
         plot_learning_curve(run.records, run.dir / "learning_curve.png")
         run.finish(total)
     finally:
@@ -177,10 +198,15 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
     if card.get("sampler_steps") not in (None, cfg.teacher_steps):
         raise ValueError(f"{cfg.teacher} was itself distilled to sample in {card['sampler_steps']} steps; "
                          f"give --teacher-steps {card['sampler_steps']} or distil its own teacher ({card.get('teacher')})")
-    if cfg.outcome_weight and teacher.outcome is None:
-        raise ValueError(f"--outcome-weight needs a teacher with an outcome chooser; {cfg.teacher} has none")
+    if (cfg.outcome_weight or cfg.student == "one-pass") and teacher.outcome is None:
+        raise ValueError(f"{'--outcome-weight' if cfg.outcome_weight else 'a one-pass student'} needs a teacher with an outcome "
+                         f"chooser; {cfg.teacher} has none")
     teacher.eval().requires_grad_(False)
-    student = student_of(teacher, noise_scale=0.0 if cfg.fixed_noise >= 0 else None, hidden_dims=cfg.student_hidden_dims)
+    noise_scale = 0.0 if cfg.fixed_noise >= 0 else None
+    if cfg.student == "one-pass":
+        student = student_of(teacher, noise_scale, onepass_dims=cfg.student_hidden_dims or DEFAULT_ONEPASS_DIMS)
+    else:
+        student = student_of(teacher, noise_scale, hidden_dims=cfg.student_hidden_dims)
     if cfg.init:
         start, start_card = load_checkpoint(cfg.init)
         if start_card.get("teacher") != cfg.teacher or start.architecture != student.architecture:
@@ -198,27 +224,39 @@ def predicted_goal_distance(teacher: torch.nn.Module, state_n: torch.Tensor, chu
     return teacher.outcome.goal_distance(state, torch.clamp(teacher.normalizer.actions(state, chunk_n), ACTION_LOW, ACTION_HIGH))
 
 
-def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "") -> torch.nn.Module:
+def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "", onepass_dims: str = "") -> torch.nn.Module:
     """A plain flow of the teacher's architecture and normalization (and `noise_scale` if given) with its flow's weights,
-    or with comma-separated `hidden_dims` a fresh network of those widths; an outcome chooser's own parts stay behind."""
+    or with comma-separated `hidden_dims` a fresh network of those widths; an outcome chooser's own parts stay behind.
+    With comma-separated `onepass_dims`: the teacher's flow with a fresh one-pass chooser of those widths over its
+    candidates and stretches (`training.onepass`)."""
     from training.policies import build_policy
 
-    arch = {k: v for k, v in teacher.architecture.items() if k not in CHOOSER_KEYS}
+    dropped = ("outcome_dims",) if onepass_dims else CHOOSER_KEYS
+    arch = {k: v for k, v in teacher.architecture.items() if k not in dropped}
     if noise_scale is not None:
         arch["noise_scale"] = noise_scale
     if hidden_dims:
-        arch["hidden_dims"] = [int(width) for width in hidden_dims.split(",")]
+        arch["hidden_dims"] = _widths(hidden_dims)
+    if onepass_dims:
+        arch["onepass_dims"] = _widths(onepass_dims)
     student = build_policy("flow", **arch)
     if not hidden_dims:
-        student.load_state_dict({k: v for k, v in teacher.state_dict().items() if not k.startswith("outcome.")})
+        weights = {k: v for k, v in teacher.state_dict().items() if not k.startswith("outcome.")}
+        weights.update({k: v for k, v in student.state_dict().items() if k.startswith("onepass.")})  # fresh
+        student.load_state_dict(weights)
     student.normalizer.set(teacher.normalizer)
     return student
+
+
+def _widths(text: str) -> list[int]:
+    return [int(width) for width in text.split(",")]
 
 
 def _train(student, teacher, optimizer, pairs, run, cfg: DistillConfig, generator: torch.Generator, first: int, total: int) -> None:
     """`cfg.steps` optimizer steps from step `first` of a cosine schedule over `total`: the student's chunk in
     `student_steps` Euler steps against the teacher's, mean squared error in normalized units (plus, with an
-    outcome weight, the teacher's predicted distance to the goal after the student's chunk)."""
+    outcome weight, the teacher's predicted distance to the goal after the student's chunk); a one-pass student's
+    `OnePassChooser.loss`."""
     from tqdm import tqdm
 
     student.train()
@@ -226,10 +264,15 @@ def _train(student, teacher, optimizer, pairs, run, cfg: DistillConfig, generato
     for step in tqdm(range(first + 1, first + cfg.steps + 1), desc="distill", disable=not cfg.progress, file=sys.stderr):
         for group in optimizer.param_groups:
             group["lr"] = cfg.lr * 0.5 * (1 + np.cos(np.pi * (step - 1) / total))
-        state_n, noise, target = pairs.batch(cfg.batch_size, generator)
-        chunk_n = student.sample_actions(state_n, noise, cfg.student_steps)
-        loss = torch.nn.functional.mse_loss(chunk_n, target)
-        running += float(loss.detach())
+        batch = pairs.batch(cfg.batch_size, generator)
+        if student.onepass is not None:
+            loss = student.onepass.loss(student, *batch)
+            running += float(loss.detach())
+        else:
+            state_n, noise, target = batch
+            chunk_n = student.sample_actions(state_n, noise, cfg.student_steps)
+            loss = torch.nn.functional.mse_loss(chunk_n, target)
+            running += float(loss.detach())
         if cfg.outcome_weight:
             distance = predicted_goal_distance(teacher, state_n, chunk_n)
             outcome = (distance.clamp_min(1e-6).sqrt() if cfg.outcome_root else distance).mean()

@@ -80,8 +80,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def default_num_steps(stem: str | Path) -> int:
-    """The Euler steps to unroll for a checkpoint: a distilled flow's own count (`sampler_steps`), else DEFAULT_NUM_STEPS."""
-    return int(read_card(checkpoint_stem(stem)).sampler_steps or DEFAULT_NUM_STEPS)
+    """The Euler steps to unroll for a checkpoint: a distilled flow's own count (`sampler_steps`), 1 for a one-pass flow
+    (it has none: one network pass), else DEFAULT_NUM_STEPS."""
+    card = read_card(checkpoint_stem(stem))
+    return 1 if card.one_pass else int(card.sampler_steps or DEFAULT_NUM_STEPS)
 
 
 def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int | None = None, opset: int = OPSET) -> dict[str, Any]:

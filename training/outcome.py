@@ -26,7 +26,7 @@ from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import tee_keypoints
 from training.selection import candidate_starts, orthogonal_maps
 
-__all__ = ["OutcomeModel", "OutcomeSelector", "goal_corner_distance"]
+__all__ = ["OutcomeModel", "OutcomeSelector", "goal_corner_distance", "nearest"]
 
 DEFAULT_OUTCOME_DIMS = (512, 512, 512, 512)
 DEFAULT_OUTCOME_CANDIDATES = 16
@@ -119,24 +119,37 @@ class OutcomeSelector(nn.Module):
 
     def best_chunk(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int) -> torch.Tensor:
         """The normalized candidate chunk [B, H, A] whose predicted outcome leaves the block closest to the goal."""
-        chunks_n, actions = self.candidate_chunks(flow, state_n, noise, num_steps)
-        index = self.choose(_env_state(flow, state_n), actions).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
+        chunks_n, distance = self.scored_candidates(flow, state_n, noise, num_steps)
+        index = nearest(distance).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
         return torch.gather(chunks_n, 1, index).squeeze(1)
+
+    def scored_candidates(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The normalized candidate chunks [B, K * S, H, A] of `noise` (as `candidate_chunks`) and their predicted goal distances [B, K * S]."""
+        chunks_n, actions = self.candidate_chunks(flow, state_n, noise, num_steps)
+        return chunks_n, self.distances(_env_state(flow, state_n), actions)
 
     def goal_distance(self, state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
         """[B]: how far (`goal_corner_distance`) the model predicts env-unit chunks [B, H, A] leave the block from states [B, S]."""
         return goal_corner_distance(self.model(state, chunk))
 
-    def choose(self, state: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
-        """Index [B] of the chunk among [B, K * S, H, A] (env units) whose predicted end pose is closest to the goal (0 on a near tie)."""
+    def distances(self, state: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
+        """`goal_distance` [B, K * S] of each of the chunks [B, K * S, H, A] (env units) from states [B, S]."""
         k = self.choices
         states = state.unsqueeze(1).expand(-1, k, -1).reshape(-1, state.shape[1])
-        distance = self.goal_distance(states, chunks.reshape(-1, *self.chunk_shape)).reshape(-1, k)
-        best = distance.argmin(dim=1)
-        # Chunks that do not reach the block tie up to float noise, and float noise must not choose (ONNX Runtime and
-        # torch round differently): unless a candidate is clearly better, the flow's own sample (candidate 0) plays.
-        clearly = distance.gather(1, best[:, None]).squeeze(1) < distance[:, 0] * (1 - TIE_MARGIN)
-        return torch.where(clearly, best, torch.zeros_like(best))
+        return self.goal_distance(states, chunks.reshape(-1, *self.chunk_shape)).reshape(-1, k)
+
+    def choose(self, state: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
+        """Index [B] of the chunk among [B, K * S, H, A] (env units) whose predicted end pose is closest to the goal (0 on a near tie)."""
+        return nearest(self.distances(state, chunks))
+
+
+def nearest(distance: torch.Tensor) -> torch.Tensor:
+    """Index [B] of the least of the candidates' predicted goal distances [B, C], 0 (the flow's own sample) on a near tie."""
+    best = distance.argmin(dim=1)
+    # Chunks that do not reach the block tie up to float noise, and float noise must not choose (ONNX Runtime and
+    # torch round differently): unless a candidate is clearly better, the flow's own sample (candidate 0) plays.
+    clearly = distance.gather(1, best[:, None]).squeeze(1) < distance[:, 0] * (1 - TIE_MARGIN)
+    return torch.where(clearly, best, torch.zeros_like(best))
 
 
 def goal_corner_distance(pose: torch.Tensor) -> torch.Tensor:

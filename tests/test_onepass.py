@@ -1,0 +1,96 @@
+"""The one-pass chooser: given the chooser's own candidates and scores it picks the chooser's chunk, and a short
+`training.distill --student one-pass` run gives a flow with no steps that exports, loads and refuses num_steps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from acting import load_policy
+from pusht.seeding import chunk_noise
+from training.checkpoint import load_acting_policy, load_card, load_checkpoint
+from training.distill import DistillConfig, distill
+from training.distill_data import PAIRS_FILE, teacher_choices
+from training.export import export_onnx
+from training.onepass import OnePassChooser, score_target
+from training.outcome import nearest
+
+REPO = Path(__file__).resolve().parent.parent
+TEACHER = REPO / "records" / "flow-outcome16-stretch" / "last"
+STATES = np.array([[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1], [180.0, 260.0, 240.0, 250.0, 2.0],
+                   [260.0, 300.0, 250.0, 280.0, 5.5], [120.0, 150.0, 300.0, 200.0, 1.2], [400.0, 380.0, 330.0, 300.0, 4.0]],
+                  dtype=np.float32)
+
+
+def test_given_the_choosers_candidates_and_scores_the_one_pass_head_picks_the_choosers_chunk() -> None:
+    teacher, _ = load_checkpoint(TEACHER)
+    teacher.eval()
+    state_n = teacher.policy_state(torch.from_numpy(STATES))
+    noise = torch.as_tensor(chunk_noise(12345, 1, 12, 2)).expand(len(STATES), -1, -1)
+    candidates, distances = teacher_choices(teacher, state_n, noise, 10)
+    assert candidates.shape == (6, 64, 12, 2) and distances.shape == (6, 256)
+    head = OnePassChooser(6, (12, 2), [8], 64, teacher.outcome.stretches)
+    head.forward = lambda flow, s: (candidates, score_target(distances))  # a perfect student
+    with torch.no_grad():
+        want = teacher.sample_actions(state_n, noise, 10)
+        got = head.best_chunk(teacher, state_n, torch.randn(6, 12, 2))
+    # the chooser keeps its own sample on a near tie (TIE_MARGIN); the student has no such rule
+    agree = (nearest(distances) == distances.argmin(dim=1)).numpy()
+    assert agree.any()
+    np.testing.assert_allclose(got.numpy()[agree], want.numpy()[agree], atol=1e-4)
+
+
+def test_a_short_one_pass_distillation_gives_a_flow_without_steps(tmp_path: Path) -> None:
+    cfg = DistillConfig(teacher=str(TEACHER), name="o", out_dir=str(tmp_path), student="one-pass", fixed_noise=12345, pairs=64,
+                        rounds=1, round_episodes=1, steps=6, batch_size=16, eval_episodes=1, log_every=3, progress=False,
+                        student_hidden_dims="32,32")
+    run = distill(cfg).dir
+    card = load_card(run / "last")
+    arch = card["architecture"]
+    assert arch["onepass_dims"] == [32, 32] and arch["outcome_candidates"] == 64 and "outcome_dims" not in arch
+    assert card["sampler_steps"] is None and "--student one-pass" in card["reproduce"]["distill"]
+    export_onnx(run / "last", run / "last.onnx")
+    session = ort.InferenceSession(str(run / "last.onnx"), providers=["CPUExecutionProvider"])
+    assert {i.name for i in session.get_inputs()} == {"state", "noise"}  # the ONNX contract keeps the noise input
+    noise = np.random.default_rng(0).standard_normal((6, 12, 2)).astype(np.float32)
+    got = session.run(["actions"], {"state": STATES, "noise": noise})[0]
+    with torch.no_grad():
+        want = load_acting_policy(run / "last")(torch.from_numpy(STATES), torch.from_numpy(noise)).numpy()
+    np.testing.assert_allclose(got, want, atol=1e-3)
+    np.testing.assert_array_equal(got, session.run(["actions"], {"state": STATES, "noise": 0 * noise})[0])  # deterministic
+
+    # its states, labelled anew as chunks for a flow student; its choice labels cannot serve one as they are
+    flow = DistillConfig(teacher=str(TEACHER), name="f", out_dir=str(tmp_path), fixed_noise=12345, states_from=str(run), steps=2,
+                         batch_size=16, eval_episodes=1, progress=False, student_steps=2)
+    records = (distill(flow).dir / "log.jsonl").read_text()
+    assert f'"type": "pairs", "step": 0, "round": 0, "pairs": {_saved_states(run)},' in records
+    with pytest.raises(ValueError, match="labelled by"):
+        distill(DistillConfig(**{**flow.to_dict(), "name": "g", "states_from": "", "pairs_from": str(run)}))
+    with pytest.raises(ValueError, match="carry no start noises"):
+        distill(DistillConfig(**{**flow.to_dict(), "name": "h", "fixed_noise": -1}))
+
+    policy = load_policy(run / "last.onnx")
+    assert policy.network_evaluations() == 1 and policy.default_num_steps is None and not policy.uses_noise
+    assert "one network pass" in policy.check_num_steps(1)
+    with pytest.raises(ValueError, match="one network pass"):
+        load_policy(run / "last.onnx", num_steps=2)
+
+
+def test_a_one_pass_student_needs_a_fixed_noise_and_a_chooser(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="give --fixed-noise SEED"):
+        DistillConfig(student="one-pass")
+    plain = REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"
+    with pytest.raises(ValueError, match="a one-pass student needs a teacher with an outcome chooser"):
+        distill(DistillConfig(teacher=str(plain), name="c", out_dir=str(tmp_path), student="one-pass", fixed_noise=1, progress=False))
+    assert not (tmp_path / "c").exists()
+
+
+def _saved_states(run: Path) -> int:
+    from safetensors import safe_open
+
+    with safe_open(str(run / PAIRS_FILE), framework="pt") as f:
+        return f.get_slice("state_n").get_shape()[0]

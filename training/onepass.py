@@ -1,0 +1,97 @@
+"""The outcome chooser's whole decision in one network pass: K candidate chunks and their K x S scores at once.
+
+The shipped chooser integrates 64 flow candidates in 10 Euler steps each and scores 256 stretched
+versions with its outcome model: 896 network evaluations. From one fixed start noise those candidates
+are smooth functions of the state, and so are their predicted distances to the goal; only the choice
+among them jumps. A flow student that regresses the chosen chunk must average across those jumps
+(hesitant pushes, models/README.md); `OnePassChooser` instead regresses what is smooth (every
+candidate and every score, as multi-hypothesis heads) and keeps the jump exact: an argmin over the
+predicted scores, then the chosen candidate stretched as the chooser stretches it. One MLP pass per
+chunk. `training.distill --student one-pass` trains it on the chooser's labels. Imports only torch.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from training.features import KEYPOINT_FEATURES, tee_keypoints
+
+__all__ = ["OnePassChooser", "score_target"]
+
+# Scores are learned as standardized log distances (the order is all that acting uses): near the goal, where the
+# student used to fail, distances of 1e-4 and 1e-3 differ as much as 0.1 and 1. Constants from the chooser's labels.
+_LOG_FLOOR, _LOG_MEAN, _LOG_STD = 1e-5, -2.7, 2.0
+_CHOICE_SEED = 20261203
+_FRAME_SCALE = 100.0  # px
+
+
+class OnePassChooser(nn.Module):
+    """MLP(encoded state, tee corners, agent in the block's frame) -> K normalized candidate chunks and K x S scores (lower: predicted closer to the goal)."""
+
+    def __init__(self, encoded_dim: int, chunk_shape: tuple[int, int], hidden_dims: Sequence[int], candidates: int,
+                 stretches: Sequence[float], choice_noise: float = 0.0) -> None:
+        super().__init__()
+        self.chunk_shape = tuple(chunk_shape)
+        self.candidates = int(candidates)
+        self.stretches = tuple(float(s) for s in stretches)
+        self.choices = self.candidates * len(self.stretches)
+        self.chunk_dim = self.chunk_shape[0] * self.chunk_shape[1]
+        layers: list[nn.Module] = []
+        prev = encoded_dim + KEYPOINT_FEATURES + 2
+        for width in hidden_dims:
+            layers += [nn.Linear(prev, width), nn.SiLU()]
+            prev = width
+        self.net = nn.Sequential(*layers, nn.Linear(prev, self.candidates * self.chunk_dim + self.choices))
+        # The start noise, through a fixed map to one standard-normal number per choice, times `choice_noise`, joins the
+        # scores: 0 is the chooser from its one fixed noise, more breaks near ties at random (from the request's seed).
+        self.choice_noise = float(choice_noise)
+        generator = torch.Generator().manual_seed(_CHOICE_SEED)
+        spread = torch.randn(self.chunk_dim, self.choices, generator=generator)
+        self.register_buffer("spread", spread / spread.norm(dim=0, keepdim=True), persistent=False)
+
+    # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
+    def forward(self, flow: nn.Module, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalized candidate chunks [B, K, H, A] and scores [B, K * S] (the K candidates at each stretch in turn) for the flow's inputs."""
+        state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
+        out = self.net(torch.cat([flow.encode_state(state_n), tee_keypoints(state[:, 2:5]), agent_in_block_frame(state)], dim=1))
+        split = self.candidates * self.chunk_dim
+        return out[:, :split].reshape(-1, self.candidates, *self.chunk_shape), out[:, split:]
+
+    def loss(self, flow: nn.Module, state_n: torch.Tensor, candidates: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
+        """Mean squared error of the candidates [B, K, H, A] (normalized) plus that of the scores against `score_target` of the
+        chooser's predicted goal distances [B, K * S]."""
+        chunks_n, scores = self(flow, state_n)
+        return F.mse_loss(chunks_n, candidates) + F.mse_loss(scores, score_target(distances))
+
+    def best_chunk(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """The normalized chunk [B, H, A]: the best-scored candidate (scores plus `choice_noise` times standard-normal
+        numbers mapped from `noise` [B, H, A]) at its stretch (a stretch s moves every target s times as far from the
+        agent, as `training.outcome.OutcomeSelector` offers it)."""
+        chunks_n, scores = self(flow, state_n)
+        # always in the graph, so the exported graph keeps its noise input (the ONNX contract) even at 0
+        best = (scores + self.choice_noise * (noise.flatten(1) @ self.spread)).argmin(dim=1)
+        index = torch.remainder(best, self.candidates).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
+        chunk_n = torch.gather(chunks_n, 1, index).squeeze(1)
+        if len(self.stretches) == 1 and self.stretches[0] == 1.0:
+            return chunk_n
+        stretch = torch.tensor(self.stretches, dtype=state_n.dtype, device=state_n.device)[torch.div(best, self.candidates, rounding_mode="floor")]
+        state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
+        raw = flow.normalizer.actions(state, chunk_n)
+        agent = state[:, None, : self.chunk_shape[1]]
+        return flow.normalizer.chunk(state, agent + stretch.reshape(-1, 1, 1) * (raw - agent))
+
+
+def agent_in_block_frame(state: torch.Tensor) -> torch.Tensor:
+    """[B, 2]: the agent relative to the block in the block's frame (what pushes depend on), from env-unit states [B, 5]."""
+    cos, sin = torch.cos(state[:, 4]), torch.sin(state[:, 4])
+    dx, dy = state[:, 0] - state[:, 2], state[:, 1] - state[:, 3]
+    return torch.stack([cos * dx + sin * dy, -sin * dx + cos * dy], dim=1) / _FRAME_SCALE
+
+
+def score_target(distance: torch.Tensor) -> torch.Tensor:
+    """What a score regresses: the standardized log of a predicted goal distance (`training.outcome.goal_corner_distance`)."""
+    return (torch.log(distance + _LOG_FLOOR) - _LOG_MEAN) / _LOG_STD
