@@ -26,8 +26,8 @@ def plot_learning_curve(records: list[dict[str, Any]], path: str | Path) -> None
                              [r["mean_max_reward_ci95"][1] for r in evals], alpha=0.2)
         ax_eval.plot(steps, [r["success_rate"] for r in evals], "s-", label="success rate")
         ax_eval.legend(loc="upper left")
-        first = evals[0]["seeds"]
-        ax_eval.set_title(f"evaluation ({len(first)} episodes, seeds {first[0]}..{first[-1]})")
+        first = evals[0]["seeds"]  # [first, last] in newer logs, every seed in older ones
+        ax_eval.set_title(f"evaluation ({evals[0].get('episodes', len(first))} episodes, seeds {first[0]}..{first[-1]})")
     else:
         ax_eval.set_title("evaluation (none yet)")
     last_step = max([r["step"] for r in records], default=1)
