@@ -92,11 +92,10 @@ class Card:
     @property
     def uses_noise(self) -> bool:
         """Whether a flow's actions depend on its start noise: not where the card scales it to 0 (a deterministic student)
-        and nothing else reads it (steering, a selector or an outcome chooser map the noise itself); a one-pass flow only with
-        a choice noise."""
+        and nothing else reads it (steering, a selector or an outcome chooser map the noise itself); never a one-pass flow."""
         arch = self.architecture
         if self.one_pass:
-            return float(arch.get("choice_noise", 0.0)) != 0.0
+            return False
         if self.kind != "flow" or any(arch.get(k) is not None for k in ("steering_dims", "selector_dims", "outcome_dims")):
             return self.kind == "flow"
         return float(arch.get("noise_scale", 1.0)) != 0.0

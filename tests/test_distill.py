@@ -80,7 +80,7 @@ def test_a_run_can_start_from_another_runs_pairs_with_a_smaller_student_and_weig
 
     # pairs labelled by another teacher, or in another step count, are refused with the file named
     teacher, _ = load_checkpoint(TEACHER)
-    with pytest.raises(ValueError, match=f"{PAIRS_FILE}: labelled by {TEACHER} in 10 steps with fixed noise -1, not by models/flow in 10 with -1"):
+    with pytest.raises(ValueError, match=f"{PAIRS_FILE}: chunks labelled by {TEACHER} in 10 steps with fixed noise -1, not chunks by models/flow in 10 with -1"):
         Pairs(teacher, "models/flow", 10).load(first / PAIRS_FILE)
     with pytest.raises(FileNotFoundError, match="no saved pairs"):
         Pairs(teacher, str(TEACHER), 10).load(tmp_path / PAIRS_FILE)

@@ -22,11 +22,11 @@ DEFAULT_TIME_EMBEDDING_DIM = 32
 _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
 MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame", "prev_state", "pace_input", "acting_pace")
 FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale", "steering_dims", "selector_dims", "selector_candidates",
-                                  "outcome_dims", "outcome_candidates", "outcome_stretches", "onepass_dims", "choice_noise")
+                                  "outcome_dims", "outcome_candidates", "outcome_stretches", "onepass_dims")
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 _VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar",
                      "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0, "steering_dims": None,
-                     "selector_dims": None, "selector_candidates": 16, "outcome_dims": None, "outcome_candidates": 16, "outcome_stretches": [1.0], "onepass_dims": None, "choice_noise": 0.0,
+                     "selector_dims": None, "selector_candidates": 16, "outcome_dims": None, "outcome_candidates": 16, "outcome_stretches": [1.0], "onepass_dims": None,
                      "prev_state": False, "pace_input": False, "acting_pace": None}
 
 
@@ -62,11 +62,6 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale <= 10:
             raise ValueError(f"noise_scale must be a number in [0, 10], got {scale!r}")
         variants["noise_scale"] = float(scale)
-    if "choice_noise" in variants:
-        spread = variants["choice_noise"]
-        if isinstance(spread, bool) or not isinstance(spread, (int, float)) or not 0 <= spread <= 10:
-            raise ValueError(f"choice_noise must be a number in [0, 10], got {spread!r}")
-        variants["choice_noise"] = float(spread)
     for key in ("steering_dims", "selector_dims", "outcome_dims", "onepass_dims"):
         dims = variants.get(key)
         if dims is None:

@@ -96,8 +96,9 @@ class Pairs:
         with safe_open(str(path), framework="pt") as f:
             meta = f.metadata() or {}
             if {k: meta.get(k) for k in self.labels} != self.labels or set(f.keys()) != set(self.columns):
-                raise ValueError(f"{path}: labelled by {meta.get('teacher')} in {meta.get('teacher_steps')} steps with fixed noise "
-                                 f"{meta.get('fixed_noise')}, not by {self.teacher_name} in {self.teacher_steps} with {self.fixed_noise}")
+                raise ValueError(f"{path}: {meta.get('labels', 'chunks')} labelled by {meta.get('teacher')} in {meta.get('teacher_steps')} "
+                                 f"steps with fixed noise {meta.get('fixed_noise')}, not {self.labels.get('labels', 'chunks')} by "
+                                 f"{self.teacher_name} in {self.teacher_steps} with {self.fixed_noise}")
             self.parts.append(tuple(f.get_tensor(k) for k in self.columns))
         print(f"loaded {len(self)} pairs from {path}", file=sys.stderr)
 

@@ -25,7 +25,6 @@ __all__ = ["OnePassChooser", "score_target"]
 # Scores are learned as standardized log distances (the order is all that acting uses): near the goal, where the
 # student used to fail, distances of 1e-4 and 1e-3 differ as much as 0.1 and 1. Constants from the chooser's labels.
 _LOG_FLOOR, _LOG_MEAN, _LOG_STD = 1e-5, -2.7, 2.0
-_CHOICE_SEED = 20261203
 _FRAME_SCALE = 100.0  # px
 
 
@@ -33,7 +32,7 @@ class OnePassChooser(nn.Module):
     """MLP(encoded state, tee corners, agent in the block's frame) -> K normalized candidate chunks and K x S scores (lower: predicted closer to the goal)."""
 
     def __init__(self, encoded_dim: int, chunk_shape: tuple[int, int], hidden_dims: Sequence[int], candidates: int,
-                 stretches: Sequence[float], choice_noise: float = 0.0) -> None:
+                 stretches: Sequence[float]) -> None:
         super().__init__()
         self.chunk_shape = tuple(chunk_shape)
         self.candidates = int(candidates)
@@ -46,12 +45,6 @@ class OnePassChooser(nn.Module):
             layers += [nn.Linear(prev, width), nn.SiLU()]
             prev = width
         self.net = nn.Sequential(*layers, nn.Linear(prev, self.candidates * self.chunk_dim + self.choices))
-        # The start noise, through a fixed map to one standard-normal number per choice, times `choice_noise`, joins the
-        # scores: 0 is the chooser from its one fixed noise, more breaks near ties at random (from the request's seed).
-        self.choice_noise = float(choice_noise)
-        generator = torch.Generator().manual_seed(_CHOICE_SEED)
-        spread = torch.randn(self.chunk_dim, self.choices, generator=generator)
-        self.register_buffer("spread", spread / spread.norm(dim=0, keepdim=True), persistent=False)
 
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def forward(self, flow: nn.Module, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -68,12 +61,11 @@ class OnePassChooser(nn.Module):
         return F.mse_loss(chunks_n, candidates) + F.mse_loss(scores, score_target(distances))
 
     def best_chunk(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-        """The normalized chunk [B, H, A]: the best-scored candidate (scores plus `choice_noise` times standard-normal
-        numbers mapped from `noise` [B, H, A]) at its stretch (a stretch s moves every target s times as far from the
-        agent, as `training.outcome.OutcomeSelector` offers it)."""
+        """The normalized chunk [B, H, A]: the best-scored candidate at its stretch (a stretch s moves every target s times
+        as far from the agent, as `training.outcome.OutcomeSelector` offers it). Deterministic: `noise` [B, H, A] is unused."""
         chunks_n, scores = self(flow, state_n)
-        # always in the graph, so the exported graph keeps its noise input (the ONNX contract) even at 0
-        best = (scores + self.choice_noise * (noise.flatten(1) @ self.spread)).argmin(dim=1)
+        # A zero term keeps `noise` an input of the exported graph, as the ONNX contract has every flow take it.
+        best = (scores + 0.0 * noise.flatten(1)[:, :1]).argmin(dim=1)
         index = torch.remainder(best, self.candidates).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
         chunk_n = torch.gather(chunks_n, 1, index).squeeze(1)
         if len(self.stretches) == 1 and self.stretches[0] == 1.0:
