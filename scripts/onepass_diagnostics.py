@@ -25,7 +25,7 @@ from pusht.seeding import chunk_noise  # noqa: E402
 from pusht.spec import ACTION_HIGH, ACTION_LOW  # noqa: E402
 from training.checkpoint import load_checkpoint  # noqa: E402
 from training.evaluate import evaluate_policy  # noqa: E402
-from training.outcome import nearest  # noqa: E402
+from training.outcome import nearest, stretch  # noqa: E402
 from training.policies import ActingPolicy  # noqa: E402
 
 MODES = ("student", "student-candidates", "student-scores")
@@ -67,10 +67,10 @@ class _Swapped(nn.Module):
         candidates, scores = student.onepass(student, state_n)
         rows = torch.arange(len(state))
         if self.mode == "student-candidates":
-            raw = student.normalizer.actions(state.repeat_interleave(chooser.candidates, 0), candidates.flatten(0, 1))
-            raw = raw.reshape(len(state), chooser.candidates, *raw.shape[1:])
-            agent = state[:, None, None, : student.action_dim]
-            every = torch.cat([torch.clamp(agent + s * (raw - agent), ACTION_LOW, ACTION_HIGH) for s in chooser.stretches], dim=1)
+            states = state.repeat_interleave(chooser.candidates, 0)
+            raw = student.normalizer.actions(states, candidates.flatten(0, 1))
+            every = torch.cat([torch.clamp(stretch(states, raw, s), ACTION_LOW, ACTION_HIGH).reshape(*candidates.shape)
+                               for s in chooser.stretches], dim=1)
             return every[rows, nearest(chooser.distances(state, every))]
         chunks_n, _ = chooser.scored_candidates(teacher, teacher.policy_state(state), self.fixed.expand(len(state), -1, -1), 10)
         return torch.clamp(teacher.normalizer.actions(state, chunks_n[rows, scores.argmin(dim=1)]), ACTION_LOW, ACTION_HIGH)

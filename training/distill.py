@@ -267,12 +267,11 @@ def _train(student, teacher, optimizer, pairs, run, cfg: DistillConfig, generato
         batch = pairs.batch(cfg.batch_size, generator)
         if student.onepass is not None:
             loss = student.onepass.loss(student, *batch)
-            running += float(loss.detach())
         else:
             state_n, noise, target = batch
             chunk_n = student.sample_actions(state_n, noise, cfg.student_steps)
             loss = torch.nn.functional.mse_loss(chunk_n, target)
-            running += float(loss.detach())
+        running += float(loss.detach())
         if cfg.outcome_weight:
             distance = predicted_goal_distance(teacher, state_n, chunk_n)
             outcome = (distance.clamp_min(1e-6).sqrt() if cfg.outcome_root else distance).mean()

@@ -75,9 +75,7 @@ class Pairs:
         """Label anew the states saved at `path` by any distillation run (with their noises, unless this labelling fixes one)."""
         from safetensors import safe_open
 
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no saved pairs (a distillation run writes them after its first round)")
-        with safe_open(str(path), framework="pt") as f:
+        with safe_open(str(_saved_pairs(path)), framework="pt") as f:
             state_n = f.get_tensor("state_n")
             if "noise" in f.keys():
                 noise = f.get_tensor("noise")
@@ -91,9 +89,7 @@ class Pairs:
         """Add the labels saved at `path`; ValueError unless they were labelled the same way (teacher, steps, noise, kind)."""
         from safetensors import safe_open
 
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no saved pairs (a distillation run writes them after its first round)")
-        with safe_open(str(path), framework="pt") as f:
+        with safe_open(str(_saved_pairs(path)), framework="pt") as f:
             meta = f.metadata() or {}
             if {k: meta.get(k) for k in self.labels} != self.labels or set(f.keys()) != set(self.columns):
                 raise ValueError(f"{path}: {meta.get('labels', 'chunks')} labelled by {meta.get('teacher')} in {meta.get('teacher_steps')} "
@@ -101,6 +97,13 @@ class Pairs:
                                  f"{self.teacher_name} in {self.teacher_steps} with {self.fixed_noise}")
             self.parts.append(tuple(f.get_tensor(k) for k in self.columns))
         print(f"loaded {len(self)} pairs from {path}", file=sys.stderr)
+
+
+def _saved_pairs(path: Path) -> Path:
+    """`path`, or FileNotFoundError naming it unless a distillation run saved pairs there."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no saved pairs (a distillation run writes them after its first round)")
+    return path
 
 
 def decision_pairs(module: torch.nn.Module, episodes: int, seed: int, num_envs: int = 500) -> tuple[np.ndarray, np.ndarray, dict]:

@@ -19,13 +19,13 @@ from torch import nn
 from torch.nn import functional as F
 
 from training.features import KEYPOINT_FEATURES, tee_keypoints
+from training.outcome import agent_in_block_frame, stretch
 
 __all__ = ["OnePassChooser", "score_target"]
 
 # Scores are learned as standardized log distances (the order is all that acting uses): near the goal, where the
 # student used to fail, distances of 1e-4 and 1e-3 differ as much as 0.1 and 1. Constants from the chooser's labels.
 _LOG_FLOOR, _LOG_MEAN, _LOG_STD = 1e-5, -2.7, 2.0
-_FRAME_SCALE = 100.0  # px
 
 
 class OnePassChooser(nn.Module):
@@ -70,18 +70,9 @@ class OnePassChooser(nn.Module):
         chunk_n = torch.gather(chunks_n, 1, index).squeeze(1)
         if len(self.stretches) == 1 and self.stretches[0] == 1.0:
             return chunk_n
-        stretch = torch.tensor(self.stretches, dtype=state_n.dtype, device=state_n.device)[torch.div(best, self.candidates, rounding_mode="floor")]
+        factor = torch.tensor(self.stretches, dtype=state_n.dtype, device=state_n.device)[torch.div(best, self.candidates, rounding_mode="floor")]
         state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
-        raw = flow.normalizer.actions(state, chunk_n)
-        agent = state[:, None, : self.chunk_shape[1]]
-        return flow.normalizer.chunk(state, agent + stretch.reshape(-1, 1, 1) * (raw - agent))
-
-
-def agent_in_block_frame(state: torch.Tensor) -> torch.Tensor:
-    """[B, 2]: the agent relative to the block in the block's frame (what pushes depend on), from env-unit states [B, 5]."""
-    cos, sin = torch.cos(state[:, 4]), torch.sin(state[:, 4])
-    dx, dy = state[:, 0] - state[:, 2], state[:, 1] - state[:, 3]
-    return torch.stack([cos * dx + sin * dy, -sin * dx + cos * dy], dim=1) / _FRAME_SCALE
+        return flow.normalizer.chunk(state, stretch(state, flow.normalizer.actions(state, chunk_n), factor.reshape(-1, 1, 1)))
 
 
 def score_target(distance: torch.Tensor) -> torch.Tensor:

@@ -26,7 +26,7 @@ from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import tee_keypoints
 from training.selection import candidate_starts, orthogonal_maps
 
-__all__ = ["OutcomeModel", "OutcomeSelector", "goal_corner_distance", "nearest"]
+__all__ = ["OutcomeModel", "OutcomeSelector", "agent_in_block_frame", "goal_corner_distance", "nearest", "stretch"]
 
 DEFAULT_OUTCOME_DIMS = (512, 512, 512, 512)
 DEFAULT_OUTCOME_CANDIDATES = 16
@@ -109,11 +109,10 @@ class OutcomeSelector(nn.Module):
         chunks_n = flow.integrate(rows, starts, num_steps)
         env_rows = _env_state(flow, rows)
         raw = flow.normalizer.actions(env_rows, chunks_n)
-        agent = env_rows[:, None, : shape[1]]
         every_n, every = [], []
-        for stretch in self.stretches:
-            stretched = raw if stretch == 1.0 else agent + stretch * (raw - agent)
-            every_n.append((chunks_n if stretch == 1.0 else flow.normalizer.chunk(env_rows, stretched)).reshape(-1, k, *shape))
+        for factor in self.stretches:
+            stretched = raw if factor == 1.0 else stretch(env_rows, raw, factor)
+            every_n.append((chunks_n if factor == 1.0 else flow.normalizer.chunk(env_rows, stretched)).reshape(-1, k, *shape))
             every.append(torch.clamp(stretched, ACTION_LOW, ACTION_HIGH).reshape(-1, k, *shape))
         return torch.cat(every_n, dim=1), torch.cat(every, dim=1)
 
@@ -156,6 +155,18 @@ def goal_corner_distance(pose: torch.Tensor) -> torch.Tensor:
     """Mean squared distance [B] (in training.features' units) of the tee's corners at poses [B, 3] to the goal's."""
     goal = torch.tensor([GOAL_POSE], dtype=pose.dtype, device=pose.device)
     return (tee_keypoints(pose) - tee_keypoints(goal)).pow(2).mean(dim=1)
+
+
+def stretch(state: torch.Tensor, actions: torch.Tensor, factor: float | torch.Tensor) -> torch.Tensor:
+    """Env-unit chunks [B, H, A] with every target `factor` times as far from the agent of states [B, S]: the same motion, faster."""
+    agent = state[:, None, : actions.shape[-1]]
+    return agent + factor * (actions - agent)
+
+
+def agent_in_block_frame(state: torch.Tensor) -> torch.Tensor:
+    """[B, 2]: the agent relative to the block, in the block's frame and `OutcomeModel`'s units, from env-unit states [B, S]."""
+    angle = state[:, 4]
+    return _to_block_frame(state[:, None, 0:2] - state[:, None, 2:4], torch.cos(angle), torch.sin(angle))[:, 0] / _FRAME_SCALE
 
 
 def _env_state(flow: nn.Module, state_n: torch.Tensor) -> torch.Tensor:
