@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from training.checkpoint import load_acting_policy, load_card, load_checkpoint
-from training.distill import DistillConfig, distill
+from training.distill import DistillConfig, distill, outcome_term, student_of
 from training.distill_data import PAIRS_FILE, Pairs
 from training.export import export_onnx
 
@@ -86,9 +86,32 @@ def test_a_run_can_start_from_another_runs_pairs_with_a_smaller_student_and_weig
         Pairs(teacher, str(TEACHER), 10).load(tmp_path / PAIRS_FILE)
 
 
+def test_the_outcome_term_looks_ahead_through_the_students_own_next_chunks() -> None:
+    from pusht.spec import ACTION_HIGH, ACTION_LOW
+
+    teacher, _ = load_checkpoint(TEACHER)
+    teacher.requires_grad_(False)  # frozen, as distillation keeps it
+    student = student_of(teacher, noise_scale=0.0)
+    states = torch.tensor([[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1]])
+    state_n = teacher.policy_state(states)
+    with torch.no_grad():  # the first chunk as a constant: any gradient below comes from the chunks played after it
+        chunk_n = student.sample_actions(state_n, torch.zeros(2, 12, 2), 2)
+    one = outcome_term(student, teacher, state_n, chunk_n, DistillConfig(outcome_weight=1.0, outcome_root=True))
+    clipped = torch.clamp(teacher.normalizer.actions(states, chunk_n), ACTION_LOW, ACTION_HIGH)
+    torch.testing.assert_close(one, teacher.outcome.goal_distance(states, clipped).sqrt().mean())
+    assert not one.requires_grad
+    three = outcome_term(student, teacher, state_n, chunk_n, DistillConfig(outcome_weight=1.0, outcome_root=True, outcome_chunks=3))
+    three.backward()
+    assert three > one and any(p.grad is not None and p.grad.abs().sum() > 0 for p in student.parameters())
+
+
 def test_distillation_settings_are_checked_before_any_work(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="outcome_weight must be >= 0"):
         DistillConfig(outcome_weight=-1)
+    with pytest.raises(ValueError, match="outcome_chunks looks ahead in the outcome term: give --outcome-weight"):
+        DistillConfig(outcome_chunks=3)
+    with pytest.raises(ValueError, match="outcome_chunks must be >= 1"):
+        DistillConfig(outcome_chunks=0, outcome_weight=1.0)
     with pytest.raises(ValueError, match="student_hidden_dims must be comma-separated positive widths"):
         DistillConfig(student_hidden_dims="256,,256")
     with pytest.raises(ValueError, match="round_seed 300000 lies among the evaluation seeds"):

@@ -77,12 +77,16 @@ class DistillConfig:
     outcome_weight: float = option(0.0, "weight of the teacher's outcome-model distance to the goal after the student's chunk, "
                                         "beside the regression (a chooser teacher only)")
     outcome_root: bool = option(False, "weigh the root of that (mean squared corner) distance: steeper near the goal")
+    outcome_chunks: int = option(1, "chunks that outcome term looks ahead: after each the agent stands at the chunk's last target "
+                                    "and the block where the outcome model predicts, the student acts again there, and the "
+                                    "distances after each chunk add up (a model-based rollout; the student learns to set up pushes)")
     seed: int = option(0, "seed of the pairs and of the batch order")
     threads: int = option(1, "torch intra-op threads")
     progress: bool = option(True, "show a tqdm progress bar on stderr")
 
     def __post_init__(self) -> None:
-        for name in ("teacher_steps", "student_steps", "pairs", "steps", "batch_size", "eval_episodes", "log_every", "threads", "round_episodes"):
+        for name in ("teacher_steps", "student_steps", "pairs", "steps", "batch_size", "eval_episodes", "log_every", "threads", "round_episodes",
+                     "outcome_chunks"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("teacher_episodes", "rounds"):
@@ -94,6 +98,8 @@ class DistillConfig:
             raise ValueError(f"student_hidden_dims must be comma-separated positive widths, got {self.student_hidden_dims!r}")
         if not self.outcome_weight >= 0:
             raise ValueError(f"outcome_weight must be >= 0, got {self.outcome_weight}")
+        if self.outcome_chunks > 1 and not self.outcome_weight:
+            raise ValueError("outcome_chunks looks ahead in the outcome term: give --outcome-weight too")
         if self.student not in STUDENTS:
             raise ValueError(f"student must be one of {STUDENTS}, got {self.student!r}")
         if self.pairs_from and self.states_from:
@@ -216,12 +222,24 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
     return teacher, student
 
 
-def predicted_goal_distance(teacher: torch.nn.Module, state_n: torch.Tensor, chunk_n: torch.Tensor) -> torch.Tensor:
-    """[B]: where the teacher's outcome model predicts normalized chunks [B, H, A] leave the block, as its chooser scores it."""
+def outcome_term(student, teacher, state_n: torch.Tensor, chunk_n: torch.Tensor, cfg: DistillConfig) -> torch.Tensor:
+    """The teacher's outcome model's distance to the goal (its root with `outcome_root`) after the student's normalized chunks
+    [B, H, A] from the inputs `state_n`, summed over `outcome_chunks` chunks the student plays on in the model."""
     from pusht.spec import ACTION_HIGH, ACTION_LOW
+    from training.outcome import goal_corner_distance
 
     state = teacher.normalizer.env_state(state_n[:, : teacher.state_dim])
-    return teacher.outcome.goal_distance(state, torch.clamp(teacher.normalizer.actions(state, chunk_n), ACTION_LOW, ACTION_HIGH))
+    total = chunk_n.new_zeros(())
+    for ahead in range(cfg.outcome_chunks):
+        if ahead:
+            chunk_n = student.sample_actions(student.policy_state(state), torch.randn_like(chunk_n), cfg.student_steps)
+        actions = torch.clamp(teacher.normalizer.actions(state, chunk_n), ACTION_LOW, ACTION_HIGH)
+        pose = teacher.outcome.model(state, actions)
+        distance = goal_corner_distance(pose)
+        total = total + (distance.clamp_min(1e-6).sqrt() if cfg.outcome_root else distance).mean()
+        # the agent ends a chunk near its last target (PD control), the block where the model predicts
+        state = torch.cat([actions[:, -1], pose], dim=1)
+    return total
 
 
 def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "", onepass_dims: str = "") -> torch.nn.Module:
@@ -255,7 +273,7 @@ def _widths(text: str) -> list[int]:
 def _train(student, teacher, optimizer, pairs, run, cfg: DistillConfig, generator: torch.Generator, first: int, total: int) -> None:
     """`cfg.steps` optimizer steps from step `first` of a cosine schedule over `total`: the student's chunk in
     `student_steps` Euler steps against the teacher's, mean squared error in normalized units (plus, with an
-    outcome weight, the teacher's predicted distance to the goal after the student's chunk); a one-pass student's
+    outcome weight, `outcome_term`: the teacher's predicted distance to the goal after the student's chunks); a one-pass student's
     `OnePassChooser.loss`."""
     from tqdm import tqdm
 
@@ -273,8 +291,7 @@ def _train(student, teacher, optimizer, pairs, run, cfg: DistillConfig, generato
             loss = torch.nn.functional.mse_loss(chunk_n, target)
         running += float(loss.detach())
         if cfg.outcome_weight:
-            distance = predicted_goal_distance(teacher, state_n, chunk_n)
-            outcome = (distance.clamp_min(1e-6).sqrt() if cfg.outcome_root else distance).mean()
+            outcome = outcome_term(student, teacher, state_n, chunk_n, cfg)
             running_outcome += float(outcome.detach())
             loss = loss + cfg.outcome_weight * outcome
         optimizer.zero_grad(set_to_none=True)
