@@ -1,0 +1,140 @@
+"""Experiment: a multiple-choice student of the chooser (one MLP pass: K hypothesis chunks and which one to play).
+
+    .venv/bin/python scripts/multichoice_student.py --k 8 --outcome-weight 3 --rounds 2
+
+The 2-step student regresses the one chunk the chooser picks and averages where the pick jumps; the
+one-pass head regresses all the chooser's candidates and scores. This sits between: K hypotheses trained
+winner-takes-all on the chooser's chunk (relaxed: the losers get `--relax` of the loss, so none dies),
+logits trained by cross-entropy toward the winner, and at acting time the argmax hypothesis (multiple
+choice learning, Guzman-Rivera et al. 2012; BeT's mode-plus-offset idea). With `--outcome-weight` the
+teacher's outcome model scores the played hypothesis as in `training.distill`. Pairs: a distillation
+run's saved chunk labels from the fixed noise 12345 (`--pairs`), then `--rounds` DAgger rounds (the
+student plays 1,000 training-seed episodes, the chooser labels their decision states). Prints one JSON
+line per round and one at the end (success on `--eval-episodes` from `--eval-seed`). Not a product path:
+the weights are not kept in a card, so nothing here exports or serves yet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pusht.spec import ACTION_HIGH, ACTION_LOW  # noqa: E402
+from training.checkpoint import load_checkpoint  # noqa: E402
+from training.distill_data import Pairs, decision_pairs  # noqa: E402
+from training.evaluate import evaluate_policy  # noqa: E402
+from training.features import KEYPOINT_FEATURES, tee_keypoints  # noqa: E402
+from training.outcome import agent_in_block_frame, goal_corner_distance  # noqa: E402
+
+TEACHER = "records/flow-outcome16-stretch/last"
+FIXED_NOISE = 12345
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--pairs", default="runs/distill-fixed-root-more/pairs.safetensors", help="chunk labels of the chooser from noise 12345")
+    parser.add_argument("--k", type=int, default=8, help="hypotheses")
+    parser.add_argument("--hidden", default="512,512,512", help="comma-separated hidden widths")
+    parser.add_argument("--steps", type=int, default=20000, help="optimizer steps before the rounds")
+    parser.add_argument("--round-steps", type=int, default=10000, help="optimizer steps after each round's labels")
+    parser.add_argument("--lr", type=float, default=1e-3, help="peak learning rate (cosine to 0; a third of it in the rounds)")
+    parser.add_argument("--relax", type=float, default=0.05, help="share of the loss on the losing hypotheses")
+    parser.add_argument("--outcome-weight", type=float, default=0.0, help="weight of the outcome model's root goal distance after the played hypothesis")
+    parser.add_argument("--rounds", type=int, default=0, help="DAgger rounds")
+    parser.add_argument("--round-seed", type=int, default=28_100_000, help="first training seed of the rounds' episodes")
+    parser.add_argument("--eval-episodes", type=int, default=200, help="episodes of each evaluation")
+    parser.add_argument("--eval-seed", type=int, default=400_000, help="first evaluation seed (never a held-out one)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(2)
+    torch.manual_seed(0)
+    teacher, _ = load_checkpoint(TEACHER)
+    teacher.eval().requires_grad_(False)
+    pairs = Pairs(teacher, TEACHER, 10, fixed_noise=FIXED_NOISE)
+    pairs.load(Path(args.pairs))
+    student = MultiChoice(teacher, args.k, [int(w) for w in args.hidden.split(",")])
+    generator = torch.Generator().manual_seed(0)
+    train(student, teacher, pairs, args, generator, args.steps, args.lr)
+    for round_ in range(args.rounds):
+        visited, noise, played = decision_pairs(Acting(student), 1000, args.round_seed + round_ * 1000)
+        print(json.dumps({"round": round_ + 1, "played_success_rate": played["success_rate"], "states": len(visited)}), flush=True)
+        pairs.add(visited, noise, f"round {round_ + 1}")
+        train(student, teacher, pairs, args, generator, args.round_steps, args.lr / 3)
+    return 0
+
+
+class MultiChoice(nn.Module):
+    """MLP(encoded state, tee corners, agent in the block's frame) -> K normalized chunks [B, K, H, A] and K logits."""
+
+    def __init__(self, flow: nn.Module, k: int, hidden: list[int]) -> None:
+        super().__init__()
+        self.flow, self.k, self.shape = [flow], k, (flow.horizon, flow.action_dim)  # a list: the flow's weights stay out
+        layers, prev = [], flow.encode_state(torch.zeros(1, flow.state_dim)).shape[1] + KEYPOINT_FEATURES + 2
+        for width in hidden:
+            layers += [nn.Linear(prev, width), nn.SiLU()]
+            prev = width
+        self.net = nn.Sequential(*layers, nn.Linear(prev, k * self.shape[0] * self.shape[1] + k))
+
+    def forward(self, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        flow = self.flow[0]
+        state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
+        out = self.net(torch.cat([flow.encode_state(state_n), tee_keypoints(state[:, 2:5]), agent_in_block_frame(state)], dim=1))
+        split = self.k * self.shape[0] * self.shape[1]
+        return out[:, :split].reshape(-1, self.k, *self.shape), out[:, split:]
+
+    def played(self, state_n: torch.Tensor) -> torch.Tensor:
+        """The argmax hypothesis [B, H, A]."""
+        chunks, logits = self(state_n)
+        return chunks[torch.arange(len(chunks)), logits.argmax(dim=1)]
+
+
+class Acting(nn.Module):
+    """The student as the torch acting module `evaluate_policy` takes (noise unused: deterministic)."""
+
+    def __init__(self, student: MultiChoice) -> None:
+        super().__init__()
+        self.student, self.policy, self.num_steps = student, student.flow[0], 1
+
+    @torch.no_grad()
+    def forward(self, state, noise=None, num_steps=None, prev_state=None):
+        flow = self.policy
+        return torch.clamp(flow.normalizer.actions(state, self.student.played(flow.policy_state(state))), ACTION_LOW, ACTION_HIGH)
+
+
+def train(student: MultiChoice, teacher: nn.Module, pairs: Pairs, args: argparse.Namespace, generator: torch.Generator,
+          steps: int, lr: float) -> None:
+    """`steps` optimizer steps (cosine from `lr`), then an evaluation printed as one JSON line."""
+    optimizer = torch.optim.AdamW(student.parameters(), lr=lr, weight_decay=0.0)
+    student.train()
+    for step in range(1, steps + 1):
+        for group in optimizer.param_groups:
+            group["lr"] = lr * 0.5 * (1 + np.cos(np.pi * (step - 1) / steps))
+        state_n, _, target = pairs.batch(256, generator)
+        chunks, logits = student(state_n)
+        error = (chunks - target[:, None]).pow(2).mean(dim=(2, 3))
+        winner = error.argmin(dim=1)
+        loss = (1 - args.relax) * error.gather(1, winner[:, None]).mean() + args.relax * error.mean() + 0.1 * F.cross_entropy(logits, winner)
+        if args.outcome_weight:
+            state = teacher.normalizer.env_state(state_n[:, : teacher.state_dim])
+            played = chunks[torch.arange(len(chunks)), logits.argmax(dim=1)]
+            actions = torch.clamp(teacher.normalizer.actions(state, played), ACTION_LOW, ACTION_HIGH)
+            loss = loss + args.outcome_weight * goal_corner_distance(teacher.outcome.model(state, actions)).clamp_min(1e-6).sqrt().mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    student.eval()
+    scores = evaluate_policy(Acting(student), episodes=args.eval_episodes, seed=args.eval_seed).scores()
+    print(json.dumps({"steps": steps, **{k: scores[k] for k in ("success_rate", "success_rate_ci95", "mean_max_reward", "mean_length")}}), flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
