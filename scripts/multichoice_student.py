@@ -32,8 +32,9 @@ from pusht.spec import ACTION_HIGH, ACTION_LOW  # noqa: E402
 from training.checkpoint import load_checkpoint  # noqa: E402
 from training.distill_data import Pairs, decision_pairs  # noqa: E402
 from training.evaluate import evaluate_policy  # noqa: E402
-from training.features import KEYPOINT_FEATURES, tee_keypoints  # noqa: E402
-from training.outcome import agent_in_block_frame, goal_corner_distance  # noqa: E402
+from training.distill import DistillConfig, outcome_term  # noqa: E402
+from training.networks import silu_mlp  # noqa: E402
+from training.onepass import EXTRA_FEATURES, head_features  # noqa: E402
 
 TEACHER = "records/flow-outcome16-stretch/last"
 FIXED_NOISE = 12345
@@ -78,16 +79,11 @@ class MultiChoice(nn.Module):
     def __init__(self, flow: nn.Module, k: int, hidden: list[int]) -> None:
         super().__init__()
         self.flow, self.k, self.shape = [flow], k, (flow.horizon, flow.action_dim)  # a list: the flow's weights stay out
-        layers, prev = [], flow.encode_state(torch.zeros(1, flow.state_dim)).shape[1] + KEYPOINT_FEATURES + 2
-        for width in hidden:
-            layers += [nn.Linear(prev, width), nn.SiLU()]
-            prev = width
-        self.net = nn.Sequential(*layers, nn.Linear(prev, k * self.shape[0] * self.shape[1] + k))
+        encoded = flow.encode_state(torch.zeros(1, flow.state_dim)).shape[1]
+        self.net = silu_mlp(encoded + EXTRA_FEATURES, hidden, k * self.shape[0] * self.shape[1] + k)
 
     def forward(self, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        flow = self.flow[0]
-        state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
-        out = self.net(torch.cat([flow.encode_state(state_n), tee_keypoints(state[:, 2:5]), agent_in_block_frame(state)], dim=1))
+        out = self.net(head_features(self.flow[0], state_n))
         split = self.k * self.shape[0] * self.shape[1]
         return out[:, :split].reshape(-1, self.k, *self.shape), out[:, split:]
 
@@ -114,6 +110,7 @@ def train(student: MultiChoice, teacher: nn.Module, pairs: Pairs, args: argparse
           steps: int, lr: float) -> None:
     """`steps` optimizer steps (cosine from `lr`), then an evaluation printed as one JSON line."""
     optimizer = torch.optim.AdamW(student.parameters(), lr=lr, weight_decay=0.0)
+    outcome = DistillConfig(outcome_weight=args.outcome_weight, outcome_root=True)  # the root distance after the played chunk
     student.train()
     for step in range(1, steps + 1):
         for group in optimizer.param_groups:
@@ -124,10 +121,8 @@ def train(student: MultiChoice, teacher: nn.Module, pairs: Pairs, args: argparse
         winner = error.argmin(dim=1)
         loss = (1 - args.relax) * error.gather(1, winner[:, None]).mean() + args.relax * error.mean() + 0.1 * F.cross_entropy(logits, winner)
         if args.outcome_weight:
-            state = teacher.normalizer.env_state(state_n[:, : teacher.state_dim])
             played = chunks[torch.arange(len(chunks)), logits.argmax(dim=1)]
-            actions = torch.clamp(teacher.normalizer.actions(state, played), ACTION_LOW, ACTION_HIGH)
-            loss = loss + args.outcome_weight * goal_corner_distance(teacher.outcome.model(state, actions)).clamp_min(1e-6).sqrt().mean()
+            loss = loss + args.outcome_weight * outcome_term(None, teacher, state_n, played, outcome)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

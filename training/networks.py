@@ -25,6 +25,16 @@ def mlp(in_dim: int, hidden_dims: Sequence[int], out_dim: int, dropout: float) -
     return nn.Sequential(*layers)
 
 
+def silu_mlp(in_dim: int, hidden_dims: Sequence[int], out_dim: int) -> nn.Sequential:
+    """Linear -> SiLU per hidden layer, then a linear output layer (the outcome model's and the one-pass heads' trunk)."""
+    layers: list[nn.Module] = []
+    prev = in_dim
+    for width in hidden_dims:
+        layers += [nn.Linear(prev, width), nn.SiLU()]
+        prev = width
+    return nn.Sequential(*layers, nn.Linear(prev, out_dim))
+
+
 class StateSkipMLP(nn.Module):
     """Like `mlp`, but the conditioning `cond` [B, C] is concatenated again to the input of every hidden layer after the first and of the output layer."""
 

@@ -19,9 +19,13 @@ from torch import nn
 from torch.nn import functional as F
 
 from training.features import KEYPOINT_FEATURES, tee_keypoints
+from training.networks import silu_mlp
 from training.outcome import agent_in_block_frame, stretch
 
-__all__ = ["OnePassChooser", "score_target"]
+__all__ = ["EXTRA_FEATURES", "OnePassChooser", "head_features", "score_target"]
+
+EXTRA_FEATURES = KEYPOINT_FEATURES + 2
+"""what `head_features` adds to the flow's encoded state: the tee's corners and the agent in the block's frame"""
 
 # Scores are learned as standardized log distances (the order is all that acting uses): near the goal, where the
 # student used to fail, distances of 1e-4 and 1e-3 differ as much as 0.1 and 1. Constants from the chooser's labels.
@@ -39,18 +43,12 @@ class OnePassChooser(nn.Module):
         self.stretches = tuple(float(s) for s in stretches)
         self.choices = self.candidates * len(self.stretches)
         self.chunk_dim = self.chunk_shape[0] * self.chunk_shape[1]
-        layers: list[nn.Module] = []
-        prev = encoded_dim + KEYPOINT_FEATURES + 2
-        for width in hidden_dims:
-            layers += [nn.Linear(prev, width), nn.SiLU()]
-            prev = width
-        self.net = nn.Sequential(*layers, nn.Linear(prev, self.candidates * self.chunk_dim + self.choices))
+        self.net = silu_mlp(encoded_dim + EXTRA_FEATURES, hidden_dims, self.candidates * self.chunk_dim + self.choices)
 
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def forward(self, flow: nn.Module, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Normalized candidate chunks [B, K, H, A] and scores [B, K * S] (the K candidates at each stretch in turn) for the flow's inputs."""
-        state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
-        out = self.net(torch.cat([flow.encode_state(state_n), tee_keypoints(state[:, 2:5]), agent_in_block_frame(state)], dim=1))
+        out = self.net(head_features(flow, state_n))
         split = self.candidates * self.chunk_dim
         return out[:, :split].reshape(-1, self.candidates, *self.chunk_shape), out[:, split:]
 
@@ -73,6 +71,12 @@ class OnePassChooser(nn.Module):
         factor = torch.tensor(self.stretches, dtype=state_n.dtype, device=state_n.device)[torch.div(best, self.candidates, rounding_mode="floor")]
         state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
         return flow.normalizer.chunk(state, stretch(state, flow.normalizer.actions(state, chunk_n), factor.reshape(-1, 1, 1)))
+
+
+def head_features(flow: nn.Module, state_n: torch.Tensor) -> torch.Tensor:
+    """[B, encoded + EXTRA_FEATURES]: the flow's encoded state, the tee's corners and the agent in the block's frame, from its inputs."""
+    state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
+    return torch.cat([flow.encode_state(state_n), tee_keypoints(state[:, 2:5]), agent_in_block_frame(state)], dim=1)
 
 
 def score_target(distance: torch.Tensor) -> torch.Tensor:

@@ -24,6 +24,7 @@ from torch.nn import functional as F
 from pusht.geometry import GOAL_POSE
 from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import tee_keypoints
+from training.networks import silu_mlp
 from training.selection import candidate_starts, orthogonal_maps
 
 __all__ = ["OutcomeModel", "OutcomeSelector", "agent_in_block_frame", "goal_corner_distance", "nearest", "stretch"]
@@ -42,12 +43,7 @@ class OutcomeModel(nn.Module):
 
     def __init__(self, horizon: int, hidden_dims: Sequence[int] = DEFAULT_OUTCOME_DIMS) -> None:
         super().__init__()
-        layers: list[nn.Module] = []
-        prev = 2 + 2 * horizon + 4
-        for width in hidden_dims:
-            layers += [nn.Linear(prev, width), nn.SiLU()]
-            prev = width
-        self.net = nn.Sequential(*layers, nn.Linear(prev, 3))
+        self.net = silu_mlp(2 + 2 * horizon + 4, hidden_dims, 3)
         self.register_buffer("pose_scale", torch.tensor(_POSE_SCALE), persistent=False)
 
     def forward(self, state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
