@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -94,3 +95,45 @@ def _saved_states(run: Path) -> int:
 
     with safe_open(str(run / PAIRS_FILE), framework="pt") as f:
         return f.get_slice("state_n").get_shape()[0]
+
+
+def test_a_multichoice_head_learns_which_hypothesis_is_nearest_and_plays_it() -> None:
+    torch.manual_seed(0)
+    teacher, _ = load_checkpoint(TEACHER)
+    head = OnePassChooser(teacher.encode_state(torch.zeros(1, teacher.state_dim)).shape[1], (12, 2), [32], 3, [1.0])
+    state_n = teacher.policy_state(torch.from_numpy(STATES))
+    target = torch.randn(len(STATES), 12, 2)
+    optimizer = torch.optim.Adam(head.parameters(), lr=1e-2)
+    first = None
+    for _ in range(300):
+        loss, played = head.multichoice_loss(teacher, state_n, target, relax=0.05)
+        first = float(loss.detach()) if first is None else first
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    assert float(loss.detach()) < 0.1 * first
+    with torch.no_grad():
+        chunks, scores = head(teacher, state_n)
+        nearest_ = (chunks - target[:, None]).pow(2).mean(dim=(2, 3)).argmin(dim=1)
+        np.testing.assert_array_equal(scores.argmin(dim=1).numpy(), nearest_.numpy())  # the nearest one is the one played
+        want = chunks[torch.arange(len(chunks)), nearest_]
+        np.testing.assert_allclose(head.best_chunk(teacher, state_n, torch.randn(6, 12, 2)).numpy(), want.numpy(), atol=1e-5)
+
+
+def test_a_short_multichoice_distillation_gives_a_one_pass_flow_with_its_hypotheses(tmp_path: Path) -> None:
+    cfg = DistillConfig(teacher=str(TEACHER), name="m", out_dir=str(tmp_path), student="multichoice", hypotheses=4, fixed_noise=12345,
+                        pairs=64, rounds=1, round_episodes=1, steps=6, batch_size=16, eval_episodes=1, log_every=3, progress=False,
+                        student_hidden_dims="32,32", outcome_weight=3.0, outcome_root=True)
+    run = distill(cfg).dir
+    card = load_card(run / "last")
+    arch = card["architecture"]
+    assert arch["onepass_dims"] == [32, 32] and arch["outcome_candidates"] == 4
+    assert load_checkpoint(run / "last")[0].onepass.stretches == (1.0,)  # the default, unstretched
+    assert card["sampler_steps"] is None and "--student multichoice" in card["reproduce"]["distill"] and "--hypotheses 4" in card["reproduce"]["distill"]
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert any(r.get("type") == "train" and "outcome_distance" in r for r in records)
+    export_onnx(run / "last", run / "last.onnx")
+    policy = load_policy(run / "last.onnx")
+    assert policy.network_evaluations() == 1 and not policy.uses_noise
+    with pytest.raises(ValueError, match="relax must be in"):
+        DistillConfig(student="multichoice", relax=1.0)

@@ -16,6 +16,8 @@ and the service run it with that many network evaluations.
 `--student one-pass` distils an outcome chooser from one fixed start noise (`--fixed-noise`) into
 `training.onepass.OnePassChooser`: one network pass regresses all the chooser's candidates and their
 scores, and the choice among them stays an exact argmin (no steps; the card says `onepass_dims`).
+`--student multichoice` trains the same head as K hypotheses of the chooser's one chosen chunk and which
+one to play (`OnePassChooser.multichoice_loss`); it takes `--outcome-weight` like a flow student.
 """
 
 from __future__ import annotations
@@ -36,8 +38,9 @@ RESUMABLE_CHANGES = ("progress", "threads")
 CHOOSER_KEYS = ("outcome_dims", "outcome_candidates", "outcome_stretches")
 """Architecture keys of an outcome chooser, which a flow student does not take (it samples one chunk); a one-pass student
 keeps the candidates and stretches."""
-STUDENTS = ("flow", "one-pass")
+STUDENTS = ("flow", "one-pass", "multichoice")
 DEFAULT_ONEPASS_DIMS = "512,512,512,512"
+DEFAULT_MULTICHOICE_DIMS = "512,512,512"
 
 
 @dataclass
@@ -47,8 +50,11 @@ class DistillConfig:
     teacher: str = option("models/flow", "flow checkpoint stem to distil (its noise_scale and steps define the map)")
     teacher_steps: int = option(10, "Euler steps of the teacher's sampler")
     student: str = option("flow", "flow: a plain flow sampling in --student-steps Euler steps; one-pass: an outcome chooser's "
-                                  "candidates and scores in one network pass (needs --fixed-noise)", choices=STUDENTS)
+                                  "candidates and scores in one network pass (needs --fixed-noise); multichoice: --hypotheses chunks "
+                                  "and which to play in one network pass", choices=STUDENTS)
     student_steps: int = option(1, "Euler steps (network evaluations) of a flow student")
+    hypotheses: int = option(8, "hypothesis chunks of a multichoice student")
+    relax: float = option(0.05, "share of a multichoice student's regression loss on the hypotheses not nearest the label")
     name: str = option("flow-distill", "run name; outputs go to OUT_DIR/NAME")
     out_dir: str = option("runs", "parent folder of run folders")
     data: str = option("data/pusht_lowdim.zarr", "demonstrations whose states are distilled")
@@ -67,7 +73,8 @@ class DistillConfig:
     init: str = option("", "start the student from this checkpoint stem (a student of the same teacher, e.g. a run's last, "
                            "to go on with more rounds) instead of the teacher's flow")
     student_hidden_dims: str = option("", "comma-separated hidden widths of a fresh student network (default: the teacher's "
-                                         f"flow, weights included; a one-pass student's: {DEFAULT_ONEPASS_DIMS})")
+                                         f"flow, weights included; a one-pass student's: {DEFAULT_ONEPASS_DIMS}; "
+                                         f"a multichoice student's: {DEFAULT_MULTICHOICE_DIMS})")
     fixed_noise: int = option(-1, "if >= 0: the teacher labels every state from the one start noise of this seed (a deterministic "
                                   "policy), and the student, its start noise scaled to 0, copies that policy")
     pairs_from: str = option("", "a distillation run folder whose saved pairs (pairs.safetensors, same teacher) replace the "
@@ -86,7 +93,7 @@ class DistillConfig:
 
     def __post_init__(self) -> None:
         for name in ("teacher_steps", "student_steps", "pairs", "steps", "batch_size", "eval_episodes", "log_every", "threads", "round_episodes",
-                     "outcome_chunks"):
+                     "outcome_chunks", "hypotheses"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("teacher_episodes", "rounds"):
@@ -107,6 +114,8 @@ class DistillConfig:
         if self.student == "one-pass" and (self.fixed_noise < 0 or self.outcome_weight):
             raise ValueError("a one-pass student learns a chooser from one fixed start noise: give --fixed-noise SEED "
                              "(and no --outcome-weight: it learns the chooser's own scores)")
+        if not 0 <= self.relax < 1:
+            raise ValueError(f"relax must be in [0, 1), got {self.relax}")
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
 
@@ -211,6 +220,8 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
     noise_scale = 0.0 if cfg.fixed_noise >= 0 else None
     if cfg.student == "one-pass":
         student = student_of(teacher, noise_scale, onepass_dims=cfg.student_hidden_dims or DEFAULT_ONEPASS_DIMS)
+    elif cfg.student == "multichoice":  # deterministic whatever the labels' noise: it never reads its start noise
+        student = student_of(teacher, 0.0, onepass_dims=cfg.student_hidden_dims or DEFAULT_MULTICHOICE_DIMS, hypotheses=cfg.hypotheses)
     else:
         student = student_of(teacher, noise_scale, hidden_dims=cfg.student_hidden_dims)
     if cfg.init:
@@ -242,11 +253,12 @@ def outcome_term(student, teacher, state_n: torch.Tensor, chunk_n: torch.Tensor,
     return total
 
 
-def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "", onepass_dims: str = "") -> torch.nn.Module:
+def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "", onepass_dims: str = "",
+               hypotheses: int | None = None) -> torch.nn.Module:
     """A plain flow of the teacher's architecture and normalization (and `noise_scale` if given) with its flow's weights,
     or with comma-separated `hidden_dims` a fresh network of those widths; an outcome chooser's own parts stay behind.
     With comma-separated `onepass_dims`: the teacher's flow with a fresh one-pass chooser of those widths over its
-    candidates and stretches (`training.onepass`)."""
+    candidates and stretches (`training.onepass`), or with `hypotheses` a multiple-choice head of that many unstretched chunks."""
     from training.policies import build_policy
 
     dropped = ("outcome_dims",) if onepass_dims else CHOOSER_KEYS
@@ -257,6 +269,8 @@ def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidde
         arch["hidden_dims"] = _widths(hidden_dims)
     if onepass_dims:
         arch["onepass_dims"] = _widths(onepass_dims)
+    if hypotheses:
+        arch.update(outcome_candidates=hypotheses, outcome_stretches=[1.0])
     student = build_policy("flow", **arch)
     if not hidden_dims:
         weights = {k: v for k, v in teacher.state_dict().items() if not k.startswith("outcome.")}
@@ -274,7 +288,7 @@ def _train(student, teacher, optimizer, pairs, run, cfg: DistillConfig, generato
     """`cfg.steps` optimizer steps from step `first` of a cosine schedule over `total`: the student's chunk in
     `student_steps` Euler steps against the teacher's, mean squared error in normalized units (plus, with an
     outcome weight, `outcome_term`: the teacher's predicted distance to the goal after the student's chunks); a one-pass student's
-    `OnePassChooser.loss`."""
+    `OnePassChooser.loss`; a multichoice student's `OnePassChooser.multichoice_loss` (and the outcome term on its played chunk)."""
     from tqdm import tqdm
 
     student.train()
@@ -283,7 +297,10 @@ def _train(student, teacher, optimizer, pairs, run, cfg: DistillConfig, generato
         for group in optimizer.param_groups:
             group["lr"] = cfg.lr * 0.5 * (1 + np.cos(np.pi * (step - 1) / total))
         batch = pairs.batch(cfg.batch_size, generator)
-        if student.onepass is not None:
+        if cfg.student == "multichoice":
+            state_n, _, target = batch
+            loss, chunk_n = student.onepass.multichoice_loss(student, state_n, target, cfg.relax)
+        elif cfg.student == "one-pass":
             loss = student.onepass.loss(student, *batch)
         else:
             state_n, noise, target = batch

@@ -8,6 +8,10 @@ among them jumps. A flow student that regresses the chosen chunk must average ac
 candidate and every score, as multi-hypothesis heads) and keeps the jump exact: an argmin over the
 predicted scores, then the chosen candidate stretched as the chooser stretches it. One MLP pass per
 chunk. `training.distill --student one-pass` trains it on the chooser's labels. Imports only torch.
+
+The same head serves a multiple-choice student (`training.distill --student multichoice`; Guzman-Rivera et
+al. 2012): K hypotheses of the chooser's one chosen chunk, trained winner-takes-all, and K scores that
+learn which hypothesis is nearest (`multichoice_loss`); it plays the best-scored one, unstretched.
 """
 
 from __future__ import annotations
@@ -30,6 +34,8 @@ EXTRA_FEATURES = KEYPOINT_FEATURES + 2
 # Scores are learned as standardized log distances (the order is all that acting uses): near the goal, where the
 # student used to fail, distances of 1e-4 and 1e-3 differ as much as 0.1 and 1. Constants from the chooser's labels.
 _LOG_FLOOR, _LOG_MEAN, _LOG_STD = 1e-5, -2.7, 2.0
+# A multiple-choice student's scores are logits (negated); their cross-entropy counts a tenth of the chunks' error.
+_CHOICE_WEIGHT = 0.1
 
 
 class OnePassChooser(nn.Module):
@@ -57,6 +63,16 @@ class OnePassChooser(nn.Module):
         chooser's predicted goal distances [B, K * S]."""
         chunks_n, scores = self(flow, state_n)
         return F.mse_loss(chunks_n, candidates) + F.mse_loss(scores, score_target(distances))
+
+    def multichoice_loss(self, flow: nn.Module, state_n: torch.Tensor, target: torch.Tensor, relax: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Multiple-choice learning of one chunk [B, H, A] (normalized): the candidate nearest to it regresses it (the others get
+        `relax` of that loss, so none dies), the scores learn which one is nearest; returns the loss and the best-scored chunks."""
+        chunks_n, scores = self(flow, state_n)
+        error = (chunks_n - target[:, None]).pow(2).mean(dim=(2, 3))
+        nearest = error.argmin(dim=1)
+        loss = (1 - relax) * error.gather(1, nearest[:, None]).mean() + relax * error.mean()
+        loss = loss + _CHOICE_WEIGHT * F.cross_entropy(-scores, nearest)
+        return loss, chunks_n[torch.arange(len(chunks_n)), scores.argmin(dim=1)]
 
     def best_chunk(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """The normalized chunk [B, H, A]: the best-scored candidate at its stretch (a stretch s moves every target s times
