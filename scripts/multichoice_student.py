@@ -67,6 +67,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scorer", default="", help="comma-separated hidden widths of a second pass that scores the K hypotheses at once "
                                                      "(state features + all K chunks -> K scores, regressing the teacher's outcome model's "
                                                      "goal distances); it, not the logits, then chooses what plays")
+    parser.add_argument("--relabel", type=int, default=0, help="with --fixed-noise -1: label this many random states of --pairs (any "
+                                                                 "labels) anew from fresh noises instead of loading its labels")
+    parser.add_argument("--play", choices=("choice", "sampled", "outcome"), default="choice",
+                        help="what plays in the evaluations: the student's choice (scorer, else argmax logit); a hypothesis drawn from "
+                             "the softmax of the logits (Gumbel-max from the env's start noise); or, as a diagnostic costing K more "
+                             "evaluations, the one the teacher's outcome model predicts ends closest to the goal")
+    parser.add_argument("--card", default=None, help="at the end, write the student (no scorer) as a flow card at this stem: a one-pass "
+                                                   "head with K candidates whose scores are the negated logits (exports and serves as any flow)")
     parser.add_argument("--init-scorer", default=None, help="start the scorer from these saved weights (.safetensors)")
     args = parser.parse_args(argv)
     torch.set_num_threads(2)
@@ -74,7 +82,12 @@ def main(argv: list[str] | None = None) -> int:
     teacher, _ = load_checkpoint(TEACHER)
     teacher.eval().requires_grad_(False)
     pairs = Pairs(teacher, TEACHER, 10, fixed_noise=args.fixed_noise)
-    pairs.load(Path(args.pairs))
+    if args.relabel:
+        relabel(pairs, Path(args.pairs), args.relabel)
+        if args.save:
+            pairs.save(Path(args.save).with_suffix(".pairs.safetensors"))
+    else:
+        pairs.load(Path(args.pairs))
     student = MultiChoice(teacher, args.k, [int(w) for w in args.hidden.split(",")], [int(w) for w in args.scorer.split(",") if w])
     generator = torch.Generator().manual_seed(0)
     if args.init:
@@ -89,6 +102,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.save:
             pairs.save(Path(args.save).with_suffix(".pairs.safetensors"))
         train(student, teacher, pairs, args, generator, args.round_steps, args.lr / 3)
+    if args.card:
+        write_card(student, teacher, args.card)
     return 0
 
 
@@ -125,16 +140,59 @@ class MultiChoice(nn.Module):
 
 
 class Acting(nn.Module):
-    """The student as the torch acting module `evaluate_policy` takes (noise unused: deterministic)."""
+    """The student as the torch acting module `evaluate_policy` takes; `play` as `--play` says (the noise only read by "sampled")."""
 
-    def __init__(self, student: MultiChoice) -> None:
+    def __init__(self, student: MultiChoice, play: str = "choice") -> None:
         super().__init__()
-        self.student, self.policy, self.num_steps = student, student.flow[0], 1
+        self.student, self.policy, self.num_steps, self.play = student, student.flow[0], 1, play
 
     @torch.no_grad()
     def forward(self, state, noise=None, num_steps=None, prev_state=None):
-        flow = self.policy
-        return torch.clamp(flow.normalizer.actions(state, self.student.played(flow.policy_state(state))), ACTION_LOW, ACTION_HIGH)
+        flow, student = self.policy, self.student
+        state_n = flow.policy_state(state)
+        chunks, logits = student(state_n)
+        if self.play == "sampled":
+            uniform = (0.5 * (1 + torch.erf(noise.flatten(1)[:, : student.k] / 2**0.5))).clamp(1e-6, 1 - 1e-6)
+            index = (logits - torch.log(-torch.log(uniform))).argmax(dim=1)
+        elif self.play == "outcome":
+            index = best_by_outcome(flow, state_n, chunks)
+        else:
+            index = student.choose(state_n, chunks, logits)
+        return torch.clamp(flow.normalizer.actions(state, chunks[torch.arange(len(chunks)), index]), ACTION_LOW, ACTION_HIGH)
+
+
+def write_card(student: MultiChoice, teacher: nn.Module, stem: str) -> None:
+    """The student as `training.distill --student multichoice` would save it: the teacher's flow with a one-pass head of
+    the same trunk, whose K scores are the negated logits (the argmin plays the argmax hypothesis)."""
+    from training.checkpoint import git_commit, save_checkpoint
+    from training.distill import student_of
+
+    if student.scorer is not None:
+        raise SystemExit("--card writes a one-pass student; a scorer's second pass has no card yet")
+    hidden = ",".join(str(layer.out_features) for layer in student.net if isinstance(layer, nn.Linear))
+    card = student_of(teacher, 0.0, onepass_dims=hidden.rpartition(",")[0], hypotheses=student.k)
+    weights = {name: tensor.clone() for name, tensor in student.net.state_dict().items()}
+    last = max(int(name.split(".")[0]) for name in weights)
+    split = student.k * student.shape[0] * student.shape[1]
+    for suffix in ("weight", "bias"):
+        weights[f"{last}.{suffix}"][split:] *= -1
+    card.onepass.net.load_state_dict(weights)
+    save_checkpoint(stem, card, name="flow", teacher=TEACHER, sampler_steps=None, git_commit=git_commit(),
+                    config={"script": "scripts/multichoice_student.py", "argv": sys.argv[1:]})
+    print(f"card: {stem}.json", file=sys.stderr)
+
+
+def relabel(pairs: Pairs, path: Path, count: int) -> None:
+    """Label `count` random states saved at `path` anew, each from a fresh start noise (seeded: the same states and noises every run)."""
+    from safetensors import safe_open
+
+    if pairs.fixed_noise >= 0:
+        raise SystemExit("--relabel labels from fresh noises: give --fixed-noise -1")
+    with safe_open(str(path), framework="pt") as f:
+        state_n = f.get_tensor("state_n")
+    generator = torch.Generator().manual_seed(1)
+    rows = torch.randperm(len(state_n), generator=generator)[:count]
+    pairs.add_inputs(state_n[rows], torch.randn(len(rows), pairs.teacher.horizon, pairs.teacher.action_dim, generator=generator), "relabelled states")
 
 
 def train(student: MultiChoice, teacher: nn.Module, pairs: Pairs, args: argparse.Namespace, generator: torch.Generator,
@@ -168,7 +226,7 @@ def train(student: MultiChoice, teacher: nn.Module, pairs: Pairs, args: argparse
         save_file(student.net.state_dict(), args.save)
         if student.scorer is not None:
             save_file(student.scorer.state_dict(), str(Path(args.save).with_suffix(".scorer.safetensors")))
-    scores = evaluate_policy(Acting(student), episodes=args.eval_episodes, seed=args.eval_seed).scores()
+    scores = evaluate_policy(Acting(student, args.play), episodes=args.eval_episodes, seed=args.eval_seed).scores()
     print(json.dumps({"steps": steps, **{k: scores[k] for k in ("success_rate", "success_rate_ci95", "mean_max_reward", "mean_length")}}), flush=True)
 
 
