@@ -38,7 +38,7 @@ from training.distill_data import Pairs, decision_pairs  # noqa: E402
 from training.evaluate import evaluate_policy  # noqa: E402
 from training.distill import DistillConfig, outcome_term  # noqa: E402
 from training.networks import silu_mlp  # noqa: E402
-from training.onepass import EXTRA_FEATURES, head_features, score_target  # noqa: E402
+from training.onepass import CHOICE_WEIGHT, EXTRA_FEATURES, head_features, score_target, winner_takes_all  # noqa: E402
 
 TEACHER = "records/flow-outcome16-stretch/last"
 FIXED_NOISE = 12345
@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
             pairs.save(Path(args.save).with_suffix(".pairs.safetensors"))
         train(student, teacher, pairs, args, generator, args.round_steps, args.lr / 3)
     if args.card:
-        write_card(student, teacher, args.card)
+        write_card(student, teacher, args.card, args.hidden)
     return 0
 
 
@@ -133,11 +133,6 @@ class MultiChoice(nn.Module):
         split = self.k * self.shape[0] * self.shape[1]
         return out[:, :split].reshape(-1, self.k, *self.shape), out[:, split:]
 
-    def played(self, state_n: torch.Tensor) -> torch.Tensor:
-        """The argmax hypothesis [B, H, A]."""
-        chunks, logits = self(state_n)
-        return chunks[torch.arange(len(chunks)), self.choose(state_n, chunks, logits)]
-
 
 class Acting(nn.Module):
     """The student as the torch acting module `evaluate_policy` takes; `play` as `--play` says (the noise only read by "sampled")."""
@@ -161,16 +156,15 @@ class Acting(nn.Module):
         return torch.clamp(flow.normalizer.actions(state, chunks[torch.arange(len(chunks)), index]), ACTION_LOW, ACTION_HIGH)
 
 
-def write_card(student: MultiChoice, teacher: nn.Module, stem: str) -> None:
+def write_card(student: MultiChoice, teacher: nn.Module, stem: str, hidden: str) -> None:
     """The student as `training.distill --student multichoice` would save it: the teacher's flow with a one-pass head of
-    the same trunk, whose K scores are the negated logits (the argmin plays the argmax hypothesis)."""
+    the same trunk (`hidden` widths), whose K scores are the negated logits (the argmin plays the argmax hypothesis)."""
     from training.checkpoint import git_commit, save_checkpoint
     from training.distill import student_of
 
     if student.scorer is not None:
         raise SystemExit("--card writes a one-pass student; a scorer's second pass has no card yet")
-    hidden = ",".join(str(layer.out_features) for layer in student.net if isinstance(layer, nn.Linear))
-    card = student_of(teacher, 0.0, onepass_dims=hidden.rpartition(",")[0], hypotheses=student.k)
+    card = student_of(teacher, 0.0, onepass_dims=hidden, hypotheses=student.k)
     weights = {name: tensor.clone() for name, tensor in student.net.state_dict().items()}
     last = max(int(name.split(".")[0]) for name in weights)
     split = student.k * student.shape[0] * student.shape[1]
@@ -206,10 +200,9 @@ def train(student: MultiChoice, teacher: nn.Module, pairs: Pairs, args: argparse
             group["lr"] = lr * 0.5 * (1 + np.cos(np.pi * (step - 1) / steps))
         state_n, _, target = pairs.batch(256, generator)
         chunks, logits = student(state_n)
-        error = (chunks - target[:, None]).pow(2).mean(dim=(2, 3))
-        winner = error.argmin(dim=1)
+        loss, winner = winner_takes_all(chunks, target, args.relax)
         choice = winner if args.choice == "nearest" else best_by_outcome(teacher, state_n, chunks.detach())
-        loss = (1 - args.relax) * error.gather(1, winner[:, None]).mean() + args.relax * error.mean() + 0.1 * F.cross_entropy(logits, choice)
+        loss = loss + CHOICE_WEIGHT * F.cross_entropy(logits, choice)
         if args.outcome_weight:
             played = chunks[torch.arange(len(chunks)), student.choose(state_n, chunks, logits)]
             loss = loss + args.outcome_weight * outcome_term(None, teacher, state_n, played, outcome)
@@ -217,7 +210,7 @@ def train(student: MultiChoice, teacher: nn.Module, pairs: Pairs, args: argparse
             detached = chunks.detach()
             distance = outcome_distances(teacher, state_n, detached)
             scores = student.scores(state_n, detached)
-            loss = loss + F.mse_loss(scores, score_target(distance)) + 0.1 * F.cross_entropy(-scores, distance.argmin(dim=1))
+            loss = loss + F.mse_loss(scores, score_target(distance)) + CHOICE_WEIGHT * F.cross_entropy(-scores, distance.argmin(dim=1))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

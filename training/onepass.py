@@ -26,7 +26,7 @@ from training.features import KEYPOINT_FEATURES, tee_keypoints
 from training.networks import silu_mlp
 from training.outcome import agent_in_block_frame, stretch
 
-__all__ = ["EXTRA_FEATURES", "OnePassChooser", "head_features", "score_target"]
+__all__ = ["CHOICE_WEIGHT", "EXTRA_FEATURES", "OnePassChooser", "head_features", "score_target", "winner_takes_all"]
 
 EXTRA_FEATURES = KEYPOINT_FEATURES + 2
 """what `head_features` adds to the flow's encoded state: the tee's corners and the agent in the block's frame"""
@@ -34,8 +34,8 @@ EXTRA_FEATURES = KEYPOINT_FEATURES + 2
 # Scores are learned as standardized log distances (the order is all that acting uses): near the goal, where the
 # student used to fail, distances of 1e-4 and 1e-3 differ as much as 0.1 and 1. Constants from the chooser's labels.
 _LOG_FLOOR, _LOG_MEAN, _LOG_STD = 1e-5, -2.7, 2.0
-# A multiple-choice student's scores are logits (negated); their cross-entropy counts a tenth of the chunks' error.
-_CHOICE_WEIGHT = 0.1
+CHOICE_WEIGHT = 0.1
+"""a multiple-choice student's scores are logits (negated); their cross-entropy counts a tenth of the chunks' error"""
 
 
 class OnePassChooser(nn.Module):
@@ -68,10 +68,8 @@ class OnePassChooser(nn.Module):
         """Multiple-choice learning of one chunk [B, H, A] (normalized): the candidate nearest to it regresses it (the others get
         `relax` of that loss, so none dies), the scores learn which one is nearest; returns the loss and the best-scored chunks."""
         chunks_n, scores = self(flow, state_n)
-        error = (chunks_n - target[:, None]).pow(2).mean(dim=(2, 3))
-        nearest = error.argmin(dim=1)
-        loss = (1 - relax) * error.gather(1, nearest[:, None]).mean() + relax * error.mean()
-        loss = loss + _CHOICE_WEIGHT * F.cross_entropy(-scores, nearest)
+        loss, nearest = winner_takes_all(chunks_n, target, relax)
+        loss = loss + CHOICE_WEIGHT * F.cross_entropy(-scores, nearest)
         return loss, chunks_n[torch.arange(len(chunks_n)), scores.argmin(dim=1)]
 
     def best_chunk(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
@@ -93,6 +91,14 @@ def head_features(flow: nn.Module, state_n: torch.Tensor) -> torch.Tensor:
     """[B, encoded + EXTRA_FEATURES]: the flow's encoded state, the tee's corners and the agent in the block's frame, from its inputs."""
     state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
     return torch.cat([flow.encode_state(state_n), tee_keypoints(state[:, 2:5]), agent_in_block_frame(state)], dim=1)
+
+
+def winner_takes_all(chunks_n: torch.Tensor, target: torch.Tensor, relax: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The relaxed winner-takes-all regression of hypotheses [B, K, H, A] on one chunk [B, H, A] (the nearest gets 1 - `relax` of
+    it, the mean over all `relax`) and the index [B] of the nearest hypothesis."""
+    error = (chunks_n - target[:, None]).pow(2).mean(dim=(2, 3))
+    nearest = error.argmin(dim=1)
+    return (1 - relax) * error.gather(1, nearest[:, None]).mean() + relax * error.mean(), nearest
 
 
 def score_target(distance: torch.Tensor) -> torch.Tensor:
