@@ -74,7 +74,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "time are bounded only by the server's own flags (see the README's security model)"
             )
         if not settings.access_log:
-            logging.getLogger("uvicorn.access").setLevel(logging.WARNING)
+            access = logging.getLogger("uvicorn.access")
+            access.setLevel(logging.WARNING)
+            # As uvicorn's --no-access-log: a connection whose logger has no handler does not even build the line's
+            # arguments (the level alone still has it format the client address and path of every request).
+            access.handlers.clear()
         service.ready = True
         log.info(
             "ready: %d policies (%s) on the %s backend from %s",

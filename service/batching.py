@@ -91,6 +91,7 @@ class Batcher:
         self._last_short = False
         self._calls_since_short = 1 << 30
         self._closed = False
+        self._units: dict[int | None, int] = {}  # cost of a row by num_steps: the card's rule walks several properties
 
     async def submit(
         self, states: np.ndarray, seed: int | None = None, num_steps: int | None = None, seeds: Sequence[int] | None = None
@@ -106,7 +107,9 @@ class Batcher:
         rows = len(states)
         if self._closed:
             raise Overloaded(f"policy {self.policy.name!r} is shutting down")
-        unit = self.policy.network_evaluations(num_steps)
+        unit = self._units.get(num_steps)
+        if unit is None:
+            unit = self._units[num_steps] = self.policy.network_evaluations(num_steps)
         if self._pending_cost + rows * unit > self.queue_limit:
             raise Overloaded(
                 f"policy {self.policy.name!r} has {self._pending_cost} cost units queued (limit {self.queue_limit}; "

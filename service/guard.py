@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 from typing import Any, Awaitable, Callable
 
-__all__ = ["HeaderLimit", "QuietStartupFailure", "Refusal", "StartupProblem", "refuse_large_headers"]
+__all__ = ["HeaderLimit", "QuietStartupFailure", "Refusal", "StartupProblem", "header_bytes", "refuse_headers", "refuse_large_headers"]
 
 Scope = dict[str, Any]
 Receive = Callable[[], Awaitable[dict[str, Any]]]
@@ -36,17 +36,28 @@ class HeaderLimit:
 
 async def refuse_large_headers(scope: Scope, send: Send, max_bytes: int) -> bool:
     """Answer 431 (and close) if the request's path, query and headers add up to more than `max_bytes`; True if it did."""
+    size = header_bytes(scope)
+    if size <= max_bytes:
+        return False
+    await refuse_headers(send, size, max_bytes)
+    return True
+
+
+def header_bytes(scope: Scope) -> int:
+    """The bytes of the request's path, query and headers, as counted against PUSHT_MAX_HEADER_BYTES."""
     size = len(scope.get("raw_path") or b"") + len(scope.get("query_string") or b"")
     for name, value in scope["headers"]:
         size += len(name) + len(value) + 4
-    if size <= max_bytes:
-        return False
+    return size
+
+
+async def refuse_headers(send: Send, size: int, max_bytes: int) -> None:
+    """Answer 431 (and close) to a request whose path, query and headers are `size` bytes, over `max_bytes`."""
     body = json.dumps({"detail": f"request headers of {size} bytes exceed the limit of {max_bytes} bytes"}).encode()
     await send({"type": "http.response.start", "status": 431, "headers": [
         (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()), (b"connection", b"close"),
     ]})
     await send({"type": "http.response.body", "body": body})
-    return True
 
 
 class QuietStartupFailure:

@@ -12,7 +12,6 @@ Batcher, sharing model calls, key, body and queue limits with `/act`; errors are
 
 from __future__ import annotations
 
-import asyncio
 from typing import Any
 
 import numpy as np
@@ -21,7 +20,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, ValidationError
 
-from service.act import ServiceError, _read_body, await_actions, cap_errors, check_key, request_headers
+from service.act import ServiceError, await_actions, cap_errors, check_key, read_body, request_headers
 from acting import Policy
 from service.batching import Batcher, Overloaded
 from service.oip_tensors import VERSION, InferRequest, answer, input_tensors, invalid, model_metadata, split_body
@@ -166,11 +165,7 @@ class OipInfer:
     async def __call__(self, request: Request, batcher: Batcher, name: str) -> Response:
         """Answer one inference request (the request has passed check_request and the model exists)."""
         headers = request_headers(request.scope, WANTED_HEADERS)
-        try:
-            async with asyncio.timeout(self.body_timeout):
-                body = await _read_body(request.receive, headers.get(b"content-length"), self.max_body)
-        except TimeoutError:
-            raise ServiceError(408, f"the request body took longer than {self.body_timeout:g} s to arrive") from None
+        body = await read_body(request.receive, headers.get(b"content-length"), self.max_body, self.body_timeout)
         head, tail = split_body(body, headers.get(b"inference-header-content-length"))
         try:
             req = InferRequest.model_validate_json(head)

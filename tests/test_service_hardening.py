@@ -1,4 +1,4 @@
-"""Hardening against hostile or unlucky clients, each against a real server on loopback.
+"""Hardening against hostile or unlucky clients, each against a real server on loopback (the body deadline also in-process).
 
 Most cases run under both entry points: plain `uvicorn service.app:app` (the app's own ASGI checks)
 and `python -m service` (the Makefile's and Dockerfile's command, which adds connection limits).
@@ -161,6 +161,31 @@ def test_a_body_that_never_finishes_gets_408(server: UvicornProcess) -> None:
     answer = _raw(server.port, head + b'{"policy": "mse"', timeout=15)
     assert answer.startswith(b"HTTP/1.1 408"), answer[:200]
     assert "took longer than 2 s" in json.loads(answer.partition(b"\r\n\r\n")[2])["detail"]
+
+
+def test_the_body_deadline_is_a_408_but_a_shutdown_still_cancels() -> None:
+    """read_body keeps asyncio.timeout's rules: its own deadline is a 408, a cancellation from elsewhere propagates."""
+    from service.act import ServiceError, read_body
+
+    async def never() -> dict:
+        await asyncio.sleep(3600)
+        return {}
+
+    async def run() -> tuple[int, bool]:
+        try:
+            await read_body(never, None, 100, timeout=0.05)
+        except ServiceError as exc:
+            status = exc.status
+        reading = asyncio.create_task(read_body(never, None, 100, timeout=60))
+        await asyncio.sleep(0.01)
+        reading.cancel()
+        try:
+            await reading
+        except asyncio.CancelledError:
+            return status, True
+        return status, False
+
+    assert asyncio.run(run()) == (408, True)
 
 
 @pytest.mark.slow
