@@ -102,9 +102,11 @@ class Card:
 
     def network_evaluations(self, num_steps: int | None = None) -> int:
         """Network evaluations per chunk: 1 for mse; a flow's step count, and with an outcome chooser over K candidates at
-        S stretches K times that plus the K x S outcome-model passes; 1 for a one-pass flow."""
-        if self.kind != "flow" or self.one_pass:
+        S stretches K times that plus the K x S outcome-model passes; 1 for a one-pass flow, 2 with its scoring pass."""
+        if self.kind != "flow":
             return 1
+        if self.one_pass:
+            return 1 if self.architecture.get("onepass_scorer_dims") is None else 2
         steps = num_steps or self.num_steps
         if self.architecture.get("outcome_dims") is None:
             return steps

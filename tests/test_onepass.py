@@ -137,3 +137,53 @@ def test_a_short_multichoice_distillation_gives_a_one_pass_flow_with_its_hypothe
     assert policy.network_evaluations() == 1 and not policy.uses_noise
     with pytest.raises(ValueError, match="relax must be in"):
         DistillConfig(student="multichoice", relax=1.0)
+
+
+def test_a_scoring_pass_learns_which_hypothesis_ends_nearest_and_plays_it(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    teacher, _ = load_checkpoint(TEACHER)
+    encoded = teacher.encode_state(torch.zeros(1, teacher.state_dim)).shape[1]
+    head = OnePassChooser(encoded, (12, 2), [32], 3, [1.0], scorer_dims=[64])
+    state_n = teacher.policy_state(torch.from_numpy(STATES))
+    chunks_n = torch.randn(len(STATES), 3, 12, 2)
+    distances = torch.rand(len(STATES), 3) * 1e-2
+    optimizer = torch.optim.Adam(head.scorer.parameters(), lr=1e-2)
+    for _ in range(300):
+        loss = head.scorer_loss(teacher, state_n, chunks_n, distances)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        np.testing.assert_array_equal(head.scores(teacher, state_n, chunks_n).argmin(dim=1).numpy(), distances.argmin(dim=1).numpy())
+        head.forward = lambda flow, s: (chunks_n, torch.zeros(len(s), 3))  # the head's own scores no longer choose
+        want = chunks_n[torch.arange(len(STATES)), distances.argmin(dim=1)]
+        np.testing.assert_allclose(head.best_chunk(teacher, state_n, torch.randn(6, 12, 2)).numpy(), want.numpy(), atol=1e-6)
+
+
+def test_a_second_pass_run_scores_a_multichoice_students_hypotheses_in_two_evaluations(tmp_path: Path) -> None:
+    cfg = DistillConfig(teacher=str(TEACHER), name="m", out_dir=str(tmp_path), student="multichoice", hypotheses=4, fixed_noise=-1, top=3,
+                        pairs=32, steps=4, batch_size=8, eval_episodes=1, log_every=2, progress=False, student_hidden_dims="32,32")
+    first = distill(cfg).dir
+    assert load_checkpoint(first / "last")[0].onepass.scorer is None
+    with pytest.raises(ValueError, match="--init CARD and --steps 0"):
+        DistillConfig(student="multichoice", scorer_dims="16")
+    cfg = DistillConfig(teacher=str(TEACHER), name="s", out_dir=str(tmp_path), student="multichoice", hypotheses=4, steps=0,
+                        init=str(first / "last"), scorer_dims="16,16", scorer_steps=4, scorer_rounds=1, round_episodes=1, pairs=32,
+                        batch_size=8, eval_episodes=1, log_every=2, progress=False, student_hidden_dims="32,32", states_from=str(first))
+    run = distill(cfg).dir
+    student, card = load_checkpoint(run / "last")
+    generator = load_checkpoint(first / "last")[0]
+    for name, tensor in generator.state_dict().items():  # the hypotheses stay as trained
+        torch.testing.assert_close(student.state_dict()[name], tensor)
+    assert card["architecture"]["onepass_scorer_dims"] == [16, 16] and "--scorer-dims 16,16" in card["reproduce"]["distill"]
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert {"scorer", "scorer_round", "scorer_eval"} <= {r.get("type") for r in records}
+    export_onnx(run / "last", run / "last.onnx")
+    policy = load_policy(run / "last.onnx")
+    assert policy.network_evaluations() == 2 and not policy.uses_noise
+    state_n = student.policy_state(torch.from_numpy(STATES))
+    with torch.no_grad():
+        chunks_n, _ = student.onepass(student, state_n)
+        pick = student.onepass.scores(student, state_n, chunks_n).argmin(dim=1)
+        want = student.normalizer.actions(torch.from_numpy(STATES), chunks_n[torch.arange(len(STATES)), pick]).clamp(0, 512).numpy()
+    np.testing.assert_allclose(policy.act(STATES, np.zeros((6, 12, 2), np.float32)), want, atol=1e-3)  # ONNX plays the best-scored

@@ -17,7 +17,10 @@ and the service run it with that many network evaluations.
 `training.onepass.OnePassChooser`: one network pass regresses all the chooser's candidates and their
 scores, and the choice among them stays an exact argmin (no steps; the card says `onepass_dims`).
 `--student multichoice` trains the same head as K hypotheses of the chooser's one chosen chunk and which
-one to play (`OnePassChooser.multichoice_loss`); it takes `--outcome-weight` like a flow student.
+one to play (`OnePassChooser.multichoice_loss`); it takes `--outcome-weight` like a flow student. With
+`--top M` each state's label is the chooser's M best chunks (from fresh start noises: its modes, not one
+pick), and `--scorer-dims` adds a second pass that learns which hypothesis the teacher's outcome model
+would play (`training.distill_scorer`; 2 network evaluations) to a trained student (`--steps 0 --init CARD`).
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from __future__ import annotations
 import sys
 import time
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -55,12 +59,19 @@ class DistillConfig:
     student_steps: int = option(1, "Euler steps (network evaluations) of a flow student")
     hypotheses: int = option(8, "hypothesis chunks of a multichoice student")
     relax: float = option(0.05, "share of a multichoice student's regression loss on the hypotheses not nearest the label")
+    top: int = option(1, "a multichoice student's labels per state: the chooser's that many best (candidate, stretch) chunks, "
+                         "each pulling its nearest hypothesis")
+    scorer_dims: str = option("", "comma-separated hidden widths of a multichoice student's second pass, which learns the "
+                                  "teacher's outcome model's goal distance of each hypothesis and chooses (2 network evaluations)")
+    scorer_steps: int = option(12_000, "optimizer steps of the second pass (half as many after each of its rounds)")
+    scorer_rounds: int = option(2, "rounds of the second pass: the student plays --round-episodes, the outcome model labels its hypotheses there")
+    scorer_lr: float = option(1e-3, "AdamW peak learning rate of the second pass (a third of it in its rounds)")
     name: str = option("flow-distill", "run name; outputs go to OUT_DIR/NAME")
     out_dir: str = option("runs", "parent folder of run folders")
     data: str = option("data/pusht_lowdim.zarr", "demonstrations whose states are distilled")
     extra_states: str = option("", "comma-separated zarr stores whose states join (e.g. policy rollouts)")
     pairs: int = option(400_000, "(state, start noise, teacher chunk) triples drawn before training")
-    steps: int = option(40_000, "optimizer steps")
+    steps: int = option(40_000, "optimizer steps (0 with --scorer-dims: only the second pass of the --init student learns)")
     batch_size: int = option(256, "batch size")
     lr: float = option(1e-4, "AdamW peak learning rate (cosine decay to 0)")
     eval_episodes: int = option(200, "episodes of the final evaluation")
@@ -80,7 +91,7 @@ class DistillConfig:
     pairs_from: str = option("", "a distillation run folder whose saved pairs (pairs.safetensors, same teacher) replace the "
                                  "demonstration and teacher pairs")
     states_from: str = option("", "a distillation run folder whose saved pairs' states (pairs.safetensors, any labels) this run's "
-                                  "teacher labels anew; they replace the demonstration and teacher pairs")
+                                  "teacher labels anew (at most --pairs of them, drawn at random); they replace the demonstration and teacher pairs")
     outcome_weight: float = option(0.0, "weight of the teacher's outcome-model distance to the goal after the student's chunk, "
                                         "beside the regression (a chooser teacher only)")
     outcome_root: bool = option(False, "weigh the root of that (mean squared corner) distance: steeper near the goal")
@@ -92,11 +103,11 @@ class DistillConfig:
     progress: bool = option(True, "show a tqdm progress bar on stderr")
 
     def __post_init__(self) -> None:
-        for name in ("teacher_steps", "student_steps", "pairs", "steps", "batch_size", "eval_episodes", "log_every", "threads", "round_episodes",
-                     "outcome_chunks", "hypotheses"):
+        for name in ("teacher_steps", "student_steps", "pairs", "batch_size", "eval_episodes", "log_every", "threads", "round_episodes",
+                     "outcome_chunks", "hypotheses", "top", "scorer_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("teacher_episodes", "rounds"):
+        for name in ("teacher_episodes", "rounds", "scorer_rounds"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.round_seed in RESERVED_SEEDS:
@@ -114,6 +125,16 @@ class DistillConfig:
         if self.student == "one-pass" and (self.fixed_noise < 0 or self.outcome_weight):
             raise ValueError("a one-pass student learns a chooser from one fixed start noise: give --fixed-noise SEED "
                              "(and no --outcome-weight: it learns the chooser's own scores)")
+        if (self.top > 1 or self.scorer_dims) and self.student != "multichoice":
+            raise ValueError("--top and --scorer-dims belong to a multichoice student: give --student multichoice")
+        if self.scorer_dims and not all(w.strip().isdigit() and int(w) > 0 for w in self.scorer_dims.split(",")):
+            raise ValueError(f"scorer_dims must be comma-separated positive widths, got {self.scorer_dims!r}")
+        if self.steps < 1 and not self.scorer_dims:
+            raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if self.scorer_dims and (self.steps or not self.init):
+            raise ValueError("--scorer-dims trains the second pass of a trained multichoice student: give --init CARD and --steps 0")
+        if not self.scorer_lr > 0:
+            raise ValueError(f"scorer_lr must be > 0, got {self.scorer_lr}")
         if not 0 <= self.relax < 1:
             raise ValueError(f"relax must be in [0, 1), got {self.relax}")
         if not self.lr > 0:
@@ -162,21 +183,24 @@ def distill(cfg: DistillConfig):
         states = np.concatenate([load_replay(p).states for p in [cfg.data, *filter(None, cfg.extra_states.split(","))]])
         rows = torch.randint(0, len(states), (cfg.pairs,), generator=generator).numpy()
         noise = torch.randn((cfg.pairs, student.horizon, student.action_dim), generator=generator).numpy()
-        pairs = Pairs(teacher, cfg.teacher, cfg.teacher_steps, cfg.progress, fixed_noise=cfg.fixed_noise, choices=cfg.student == "one-pass")
-        if cfg.pairs_from:
-            pairs.load(Path(cfg.pairs_from) / PAIRS_FILE)
-        elif cfg.states_from:
-            pairs.relabel(Path(cfg.states_from) / PAIRS_FILE)
-        else:
-            pairs.add(states[rows], noise, "demonstrations")
-            if cfg.teacher_episodes:
-                pairs.add(*decision_pairs(ActingPolicy(teacher, cfg.teacher_steps), cfg.teacher_episodes, cfg.round_seed)[:2], "teacher")
-        run.log({"type": "pairs", "step": 0, "round": 0, "pairs": len(pairs), "elapsed_s": run.elapsed_s})
-        optimizer = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
-        total = cfg.steps * (cfg.rounds + 1)
+        pairs = Pairs(teacher, cfg.teacher, cfg.teacher_steps, cfg.progress, fixed_noise=cfg.fixed_noise, choices=cfg.student == "one-pass",
+                      top=cfg.top)
         reproduce = {"distill": command_line(DistillConfig, PROG, cfg.to_dict(), always=("teacher", "name", "student_steps"))}
-        sampler_steps = cfg.student_steps if cfg.student == "flow" else None  # a one-pass student has no steps
-        for round_ in range(cfg.rounds + 1):
+        save = partial(save_checkpoint, name="flow", config=cfg.to_dict(), git_commit=git_commit(), reproduce=reproduce,
+                       sampler_steps=cfg.student_steps if cfg.student == "flow" else None, teacher=str(cfg.teacher))  # a one-pass student has no steps
+        total = cfg.steps * (cfg.rounds + 1)
+        if cfg.steps:
+            if cfg.pairs_from:
+                pairs.load(Path(cfg.pairs_from) / PAIRS_FILE)
+            elif cfg.states_from:
+                pairs.relabel(Path(cfg.states_from) / PAIRS_FILE, cfg.pairs, generator)
+            else:
+                pairs.add(states[rows], noise, "demonstrations")
+                if cfg.teacher_episodes:
+                    pairs.add(*decision_pairs(ActingPolicy(teacher, cfg.teacher_steps), cfg.teacher_episodes, cfg.round_seed)[:2], "teacher")
+            run.log({"type": "pairs", "step": 0, "round": 0, "pairs": len(pairs), "elapsed_s": run.elapsed_s})
+            optimizer = torch.optim.AdamW(student.parameters(), lr=cfg.lr, weight_decay=0.0)
+        for round_ in range(cfg.rounds + 1 if cfg.steps else 0):
             if round_:
                 seed = cfg.round_seed + cfg.teacher_episodes + (round_ - 1) * cfg.round_episodes
                 visited, noise, scores = decision_pairs(ActingPolicy(student.eval(), cfg.student_steps), cfg.round_episodes, seed)
@@ -191,14 +215,21 @@ def distill(cfg: DistillConfig):
             if round_ or not cfg.pairs_from:  # new labels to keep
                 pairs.save(run.dir / PAIRS_FILE)
             finished = round_ == cfg.rounds
-            save_checkpoint(str(run.dir / ("last" if finished else f"round{round_}")), student, name="flow", config=cfg.to_dict(),
-                            git_commit=git_commit(), steps=(round_ + 1) * cfg.steps, wall_time_s=run.elapsed_s, evaluation=evaluation,
-                            finished=finished, reproduce=reproduce, sampler_steps=sampler_steps, teacher=str(cfg.teacher))
+            save(str(run.dir / ("last" if finished else f"round{round_}")), student, steps=(round_ + 1) * cfg.steps,
+                 wall_time_s=run.elapsed_s, evaluation=evaluation, finished=finished)
+        if cfg.scorer_dims:  # the hypotheses of a trained student (--init) stay; only the second pass learns
+            from training.distill_scorer import train_scorer
+
+            where = student.policy_state(torch.as_tensor(states[rows]))
+            if cfg.states_from:  # states of another run's pairs: where its students went
+                where = torch.cat([where, pairs.saved_states(Path(cfg.states_from) / PAIRS_FILE)])
+            evaluation = train_scorer(student, teacher, where, run, cfg, generator)
+            save(str(run.dir / "last"), student, steps=0, wall_time_s=run.elapsed_s, evaluation=evaluation, finished=True)
         plot_learning_curve(run.records, run.dir / "learning_curve.png")
         run.finish(total)
     finally:
         run.close()
-    print(f"done: {total} steps in {run.elapsed_s:.0f} s; {summary.scores()}; outputs in {run.dir}", file=sys.stderr)
+    print(f"done: {total} steps in {run.elapsed_s:.0f} s; {evaluation}; outputs in {run.dir}", file=sys.stderr)
     return run
 
 
@@ -221,15 +252,20 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
     if cfg.student == "one-pass":
         student = student_of(teacher, noise_scale, onepass_dims=cfg.student_hidden_dims or DEFAULT_ONEPASS_DIMS)
     elif cfg.student == "multichoice":  # deterministic whatever the labels' noise: it never reads its start noise
-        student = student_of(teacher, 0.0, onepass_dims=cfg.student_hidden_dims or DEFAULT_MULTICHOICE_DIMS, hypotheses=cfg.hypotheses)
+        student = student_of(teacher, 0.0, onepass_dims=cfg.student_hidden_dims or DEFAULT_MULTICHOICE_DIMS, hypotheses=cfg.hypotheses,
+                             scorer_dims=cfg.scorer_dims)
     else:
         student = student_of(teacher, noise_scale, hidden_dims=cfg.student_hidden_dims)
     if cfg.init:
         start, start_card = load_checkpoint(cfg.init)
-        if start_card.get("teacher") != cfg.teacher or start.architecture != student.architecture:
+        ours = {k: v for k, v in student.architecture.items() if k != "onepass_scorer_dims" or not cfg.scorer_dims}  # a fresh second pass
+        if start_card.get("teacher") != cfg.teacher or start.architecture != ours:
             raise ValueError(f"--init {cfg.init} is not a student of {cfg.teacher} with this run's architecture "
                              f"(its teacher: {start_card.get('teacher')})")
-        student = start
+        if cfg.scorer_dims:  # its weights, and a fresh second pass
+            student.load_state_dict({**student.state_dict(), **start.state_dict()})
+        else:
+            student = start
     return teacher, student
 
 
@@ -254,11 +290,12 @@ def outcome_term(student, teacher, state_n: torch.Tensor, chunk_n: torch.Tensor,
 
 
 def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "", onepass_dims: str = "",
-               hypotheses: int | None = None) -> torch.nn.Module:
+               hypotheses: int | None = None, scorer_dims: str = "") -> torch.nn.Module:
     """A plain flow of the teacher's architecture and normalization (and `noise_scale` if given) with its flow's weights,
     or with comma-separated `hidden_dims` a fresh network of those widths; an outcome chooser's own parts stay behind.
     With comma-separated `onepass_dims`: the teacher's flow with a fresh one-pass chooser of those widths over its
-    candidates and stretches (`training.onepass`), or with `hypotheses` a multiple-choice head of that many unstretched chunks."""
+    candidates and stretches (`training.onepass`), or with `hypotheses` a multiple-choice head of that many unstretched chunks
+    (and with `scorer_dims` its second pass)."""
     from training.policies import build_policy
 
     dropped = ("outcome_dims",) if onepass_dims else CHOOSER_KEYS
@@ -271,6 +308,8 @@ def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidde
         arch["onepass_dims"] = _widths(onepass_dims)
     if hypotheses:
         arch.update(outcome_candidates=hypotheses, outcome_stretches=[1.0])
+    if scorer_dims:
+        arch["onepass_scorer_dims"] = _widths(scorer_dims)
     student = build_policy("flow", **arch)
     if not hidden_dims:
         weights = {k: v for k, v in teacher.state_dict().items() if not k.startswith("outcome.")}

@@ -16,7 +16,7 @@ import torch
 
 from pusht.seeding import chunk_noise, decision_seed, row_noise
 
-__all__ = ["PAIRS_FILE", "Pairs", "decision_pairs", "teacher_choices", "teacher_chunks"]
+__all__ = ["PAIRS_FILE", "Pairs", "decision_pairs", "teacher_choices", "teacher_chunks", "teacher_top"]
 
 LABEL_BATCH = 512
 PAIRS_FILE = "pairs.safetensors"
@@ -29,15 +29,18 @@ class Pairs:
     goal distances)."""
 
     def __init__(self, teacher: torch.nn.Module, teacher_name: str, teacher_steps: int, progress: bool = False,
-                 fixed_noise: int = -1, choices: bool = False) -> None:
+                 fixed_noise: int = -1, choices: bool = False, top: int = 1) -> None:
         self.teacher, self.teacher_name, self.teacher_steps, self.progress = teacher, str(teacher_name), teacher_steps, progress
         # With a fixed noise every state is labelled from that one start: the teacher as a deterministic policy.
         self.fixed_noise = fixed_noise
         self.choices = choices
+        self.top = top  # > 1: each state's label is the chooser's `top` best chunks [top, H, A], best first
         self.columns = ("state_n", "candidates", "distances") if choices else ("state_n", "noise", "target")
         self.labels = {"teacher": self.teacher_name, "teacher_steps": str(teacher_steps), "fixed_noise": str(fixed_noise)}
         if choices:  # files of chunk labels carry no such key
             self.labels["labels"] = "choices"
+        if top > 1:
+            self.labels["labels"] = f"top {top}"
         self.parts: list[tuple[torch.Tensor, ...]] = []
 
     def __len__(self) -> int:
@@ -54,6 +57,8 @@ class Pairs:
             noise = torch.as_tensor(chunk_noise(self.fixed_noise, 1, *noise.shape[1:])).expand(len(noise), -1, -1)
         if self.choices:
             self.parts.append((state_n, *teacher_choices(self.teacher, state_n, noise, self.teacher_steps, self.progress)))
+        elif self.top > 1:
+            self.parts.append((state_n, noise, teacher_top(self.teacher, state_n, noise, self.teacher_steps, self.top, self.progress)))
         else:
             self.parts.append((state_n, noise, teacher_chunks(self.teacher, state_n, noise, self.teacher_steps, self.progress)))
 
@@ -71,8 +76,9 @@ class Pairs:
         columns = [torch.cat(column).contiguous() for column in zip(*self.parts)]
         save_file(dict(zip(self.columns, columns)), str(path), metadata=self.labels)
 
-    def relabel(self, path: Path) -> None:
-        """Label anew the states saved at `path` by any distillation run (with their noises, unless this labelling fixes one)."""
+    def relabel(self, path: Path, limit: int | None = None, generator: torch.Generator | None = None) -> None:
+        """Label anew the states saved at `path` by any distillation run (with their noises, unless this labelling fixes one);
+        of more than `limit`, that many drawn at random."""
         from safetensors import safe_open
 
         with safe_open(str(_saved_pairs(path)), framework="pt") as f:
@@ -83,7 +89,17 @@ class Pairs:
                 noise = torch.zeros(len(state_n), self.teacher.horizon, self.teacher.action_dim)  # replaced by the fixed one
             else:
                 raise ValueError(f"{path}: its states carry no start noises to label them with; give a fixed noise")
+        if limit is not None and len(state_n) > limit:
+            rows = torch.randperm(len(state_n), generator=generator)[:limit]
+            state_n, noise = state_n[rows], noise[rows]
         self.add_inputs(state_n, noise, f"states of {path}")
+
+    def saved_states(self, path: Path) -> torch.Tensor:
+        """The network inputs [N, S'] of the states saved at `path` by any distillation run (their labels unread)."""
+        from safetensors import safe_open
+
+        with safe_open(str(_saved_pairs(path)), framework="pt") as f:
+            return f.get_tensor("state_n")
 
     def load(self, path: Path) -> None:
         """Add the labels saved at `path`; ValueError unless they were labelled the same way (teacher, steps, noise, kind)."""
@@ -91,7 +107,8 @@ class Pairs:
 
         with safe_open(str(_saved_pairs(path)), framework="pt") as f:
             meta = f.metadata() or {}
-            if {k: meta.get(k) for k in self.labels} != self.labels or set(f.keys()) != set(self.columns):
+            if ({k: meta.get(k) for k in self.labels} != self.labels or meta.get("labels") != self.labels.get("labels")
+                    or set(f.keys()) != set(self.columns)):
                 raise ValueError(f"{path}: {meta.get('labels', 'chunks')} labelled by {meta.get('teacher')} in {meta.get('teacher_steps')} "
                                  f"steps with fixed noise {meta.get('fixed_noise')}, not {self.labels.get('labels', 'chunks')} by "
                                  f"{self.teacher_name} in {self.teacher_steps} with {self.fixed_noise}")
@@ -147,3 +164,18 @@ def teacher_choices(teacher: torch.nn.Module, state_n: torch.Tensor, noise: torc
         candidates.append(chunks_n[:, :k].clone())  # the stretched ones follow from these
         distances.append(distance)
     return torch.cat(candidates), torch.cat(distances)
+
+
+@torch.no_grad()
+def teacher_top(teacher: torch.nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int, top: int,
+                progress: bool = False) -> torch.Tensor:
+    """An outcome chooser's `top` best (candidate, stretch) chunks [N, top, H, A] (normalized, best first) at its network's
+    inputs `state_n` [N, S'] and noises [N, H, A]: as good as its pick by its own model, and spread over its modes."""
+    from tqdm import tqdm
+
+    out = []
+    for i in tqdm(range(0, len(state_n), LABEL_BATCH), desc="label", disable=not progress, file=sys.stderr):
+        chunks_n, distance = teacher.outcome.scored_candidates(teacher, state_n[i : i + LABEL_BATCH], noise[i : i + LABEL_BATCH], num_steps)
+        best = distance.argsort(dim=1)[:, :top]
+        out.append(torch.gather(chunks_n, 1, best[:, :, None, None].expand(-1, -1, *chunks_n.shape[2:])))
+    return torch.cat(out)

@@ -7,11 +7,14 @@ among them jumps. A flow student that regresses the chosen chunk must average ac
 (hesitant pushes, models/README.md); `OnePassChooser` instead regresses what is smooth (every
 candidate and every score, as multi-hypothesis heads) and keeps the jump exact: an argmin over the
 predicted scores, then the chosen candidate stretched as the chooser stretches it. One MLP pass per
-chunk. `training.distill --student one-pass` trains it on the chooser's labels. Imports only torch.
+chunk. `training.distill --student one-pass` trains it on the chooser's labels. Imports only torch (and pusht's action bounds).
 
 The same head serves a multiple-choice student (`training.distill --student multichoice`; Guzman-Rivera et
 al. 2012): K hypotheses of the chooser's one chosen chunk, trained winner-takes-all, and K scores that
-learn which hypothesis is nearest (`multichoice_loss`); it plays the best-scored one, unstretched.
+learn which hypothesis is nearest (`multichoice_loss`); it plays the best-scored one, unstretched. Its own scores
+only guess which hypothesis the chooser would pick; with `scorer_dims` a second pass (2 network evaluations) sees
+all K hypotheses, their targets in the block's frame as the outcome model sees them, and scores each as the
+teacher's outcome model would (`scorer_loss`): what plays is then the hypothesis predicted to end nearest the goal.
 """
 
 from __future__ import annotations
@@ -22,9 +25,10 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import KEYPOINT_FEATURES, tee_keypoints
 from training.networks import silu_mlp
-from training.outcome import agent_in_block_frame, stretch
+from training.outcome import agent_in_block_frame, stretch, targets_in_block_frame
 
 __all__ = ["CHOICE_WEIGHT", "EXTRA_FEATURES", "OnePassChooser", "head_features", "score_target", "winner_takes_all"]
 
@@ -36,13 +40,15 @@ EXTRA_FEATURES = KEYPOINT_FEATURES + 2
 _LOG_FLOOR, _LOG_MEAN, _LOG_STD = 1e-5, -2.7, 2.0
 CHOICE_WEIGHT = 0.1
 """a multiple-choice student's scores are logits (negated); their cross-entropy counts a tenth of the chunks' error"""
+REGRET_TEMPERATURE = 0.1
+"""of the second pass's softmax pick, in `score_target` units (a tenth of a standardized log distance)"""
 
 
 class OnePassChooser(nn.Module):
     """MLP(encoded state, tee corners, agent in the block's frame) -> K normalized candidate chunks and K x S scores (lower: predicted closer to the goal)."""
 
     def __init__(self, encoded_dim: int, chunk_shape: tuple[int, int], hidden_dims: Sequence[int], candidates: int,
-                 stretches: Sequence[float]) -> None:
+                 stretches: Sequence[float], scorer_dims: Sequence[int] | None = None) -> None:
         super().__init__()
         self.chunk_shape = tuple(chunk_shape)
         self.candidates = int(candidates)
@@ -50,6 +56,8 @@ class OnePassChooser(nn.Module):
         self.choices = self.candidates * len(self.stretches)
         self.chunk_dim = self.chunk_shape[0] * self.chunk_shape[1]
         self.net = silu_mlp(encoded_dim + EXTRA_FEATURES, hidden_dims, self.candidates * self.chunk_dim + self.choices)
+        # One plain MLP over the K hypotheses side by side (no weights shared across them): one network pass.
+        self.scorer = silu_mlp(encoded_dim + EXTRA_FEATURES + self.candidates * self.chunk_dim, scorer_dims, self.choices) if scorer_dims else None
 
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def forward(self, flow: nn.Module, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -58,6 +66,29 @@ class OnePassChooser(nn.Module):
         split = self.candidates * self.chunk_dim
         return out[:, :split].reshape(-1, self.candidates, *self.chunk_shape), out[:, split:]
 
+    def scores(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor | None = None) -> torch.Tensor:
+        """The scores [B, K * S] that choose (lower: predicted closer to the goal): the second pass's over the hypotheses
+        `chunks_n` [B, K, H, A] (normalized; this head's own when None), else the head's own."""
+        if chunks_n is None or self.scorer is None:
+            own_chunks, own_scores = self(flow, state_n)
+            if self.scorer is None:
+                return own_scores
+            chunks_n = own_chunks
+        state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
+        rows = state.unsqueeze(1).expand(-1, self.candidates, -1).reshape(-1, state.shape[1])
+        actions = torch.clamp(flow.normalizer.actions(rows, chunks_n.reshape(-1, *self.chunk_shape)), ACTION_LOW, ACTION_HIGH)
+        frame = targets_in_block_frame(rows, actions).reshape(-1, self.candidates * self.chunk_dim)
+        return self.scorer(torch.cat([head_features(flow, state_n), frame], dim=1))
+
+    def scorer_loss(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
+        """The second pass's loss on hypotheses [B, K, H, A] whose outcome-model goal distances are [B, K * S]: the
+        squared error of its scores about their mean against `score_target`'s (the order is what acts, not the level),
+        plus the expected regret of a softmax pick (what a wrong pick costs, in those units)."""
+        scores, target = self.scores(flow, state_n, chunks_n), score_target(distances)
+        centred = F.mse_loss(scores - scores.mean(dim=1, keepdim=True), target - target.mean(dim=1, keepdim=True))
+        regret = target - target.min(dim=1, keepdim=True).values
+        return centred + (torch.softmax(-scores / REGRET_TEMPERATURE, dim=1) * regret).sum(dim=1).mean()
+
     def loss(self, flow: nn.Module, state_n: torch.Tensor, candidates: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
         """Mean squared error of the candidates [B, K, H, A] (normalized) plus that of the scores against `score_target` of the
         chooser's predicted goal distances [B, K * S]."""
@@ -65,8 +96,9 @@ class OnePassChooser(nn.Module):
         return F.mse_loss(chunks_n, candidates) + F.mse_loss(scores, score_target(distances))
 
     def multichoice_loss(self, flow: nn.Module, state_n: torch.Tensor, target: torch.Tensor, relax: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """Multiple-choice learning of one chunk [B, H, A] (normalized): the candidate nearest to it regresses it (the others get
-        `relax` of that loss, so none dies), the scores learn which one is nearest; returns the loss and the best-scored chunks."""
+        """Multiple-choice learning of one chunk [B, H, A] or M [B, M, H, A] (normalized): the candidate nearest to each regresses
+        it (the others get `relax` of that loss, so none dies), the scores learn which one is nearest (the first); returns the loss
+        and the best-scored chunks."""
         chunks_n, scores = self(flow, state_n)
         loss, nearest = winner_takes_all(chunks_n, target, relax)
         loss = loss + CHOICE_WEIGHT * F.cross_entropy(-scores, nearest)
@@ -76,6 +108,8 @@ class OnePassChooser(nn.Module):
         """The normalized chunk [B, H, A]: the best-scored candidate at its stretch (a stretch s moves every target s times
         as far from the agent, as `training.outcome.OutcomeSelector` offers it). Deterministic: `noise` [B, H, A] is unused."""
         chunks_n, scores = self(flow, state_n)
+        if self.scorer is not None:
+            scores = self.scores(flow, state_n, chunks_n)
         # A zero term keeps `noise` an input of the exported graph, as the ONNX contract has every flow take it.
         best = (scores + 0.0 * noise.flatten(1)[:, :1]).argmin(dim=1)
         index = torch.remainder(best, self.candidates).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
@@ -94,11 +128,13 @@ def head_features(flow: nn.Module, state_n: torch.Tensor) -> torch.Tensor:
 
 
 def winner_takes_all(chunks_n: torch.Tensor, target: torch.Tensor, relax: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The relaxed winner-takes-all regression of hypotheses [B, K, H, A] on one chunk [B, H, A] (the nearest gets 1 - `relax` of
-    it, the mean over all `relax`) and the index [B] of the nearest hypothesis."""
-    error = (chunks_n - target[:, None]).pow(2).mean(dim=(2, 3))
-    nearest = error.argmin(dim=1)
-    return (1 - relax) * error.gather(1, nearest[:, None]).mean() + relax * error.mean(), nearest
+    """The relaxed winner-takes-all regression of hypotheses [B, K, H, A] on one chunk [B, H, A] or M chunks [B, M, H, A], each
+    pulling its nearest hypothesis (which gets 1 - `relax` of its error, the mean over all `relax`), and the index [B] of the
+    hypothesis nearest the (first) chunk."""
+    targets = target[:, None] if target.dim() == 3 else target
+    error = (chunks_n[:, None] - targets[:, :, None]).pow(2).mean(dim=(3, 4))  # [B, M, K]
+    nearest = error.argmin(dim=2)
+    return (1 - relax) * error.gather(2, nearest[..., None]).mean() + relax * error.mean(), nearest[:, 0]
 
 
 def score_target(distance: torch.Tensor) -> torch.Tensor:

@@ -27,7 +27,7 @@ from training.features import tee_keypoints
 from training.networks import silu_mlp
 from training.selection import candidate_starts, orthogonal_maps
 
-__all__ = ["OutcomeModel", "OutcomeSelector", "agent_in_block_frame", "goal_corner_distance", "nearest", "stretch"]
+__all__ = ["OutcomeModel", "OutcomeSelector", "agent_in_block_frame", "goal_corner_distance", "nearest", "stretch", "targets_in_block_frame"]
 
 DEFAULT_OUTCOME_DIMS = (512, 512, 512, 512)
 DEFAULT_OUTCOME_CANDIDATES = 16
@@ -59,8 +59,7 @@ class OutcomeModel(nn.Module):
         block, angle = state[:, 2:4], state[:, 4]
         cos, sin = torch.cos(angle), torch.sin(angle)
         agent = _to_block_frame(state[:, None, 0:2] - block[:, None], cos, sin).flatten(1)
-        targets = _to_block_frame(chunk - block[:, None], cos, sin).flatten(1)
-        return torch.cat([agent / _FRAME_SCALE, targets / _FRAME_SCALE, block / _ARENA_CENTER - 1.0,
+        return torch.cat([agent / _FRAME_SCALE, targets_in_block_frame(state, chunk), block / _ARENA_CENTER - 1.0,
                           torch.stack([sin, cos], dim=1)], dim=1)
 
     def loss(self, state: torch.Tensor, chunk: torch.Tensor, end_state: torch.Tensor) -> torch.Tensor:
@@ -157,6 +156,12 @@ def stretch(state: torch.Tensor, actions: torch.Tensor, factor: float | torch.Te
     """Env-unit chunks [B, H, A] with every target `factor` times as far from the agent of states [B, S]: the same motion, faster."""
     agent = state[:, None, : actions.shape[-1]]
     return agent + factor * (actions - agent)
+
+
+def targets_in_block_frame(state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
+    """[B, H * 2]: env-unit chunks' targets [B, H, 2] relative to the block of states [B, S], in its frame and `OutcomeModel`'s units."""
+    angle = state[:, 4]
+    return _to_block_frame(chunk - state[:, None, 2:4], torch.cos(angle), torch.sin(angle)).flatten(1) / _FRAME_SCALE
 
 
 def agent_in_block_frame(state: torch.Tensor) -> torch.Tensor:
