@@ -18,7 +18,7 @@ from training.distill import DistillConfig, distill
 from training.distill_data import PAIRS_FILE, teacher_choices
 from training.export import export_onnx
 from training.onepass import OnePassChooser, score_target
-from training.outcome import nearest
+from training.outcome import goal_corner_distance, nearest, pose_after
 
 REPO = Path(__file__).resolve().parent.parent
 TEACHER = REPO / "records" / "flow-outcome16-stretch" / "last"
@@ -139,25 +139,30 @@ def test_a_short_multichoice_distillation_gives_a_one_pass_flow_with_its_hypothe
         DistillConfig(student="multichoice", relax=1.0)
 
 
-def test_a_scoring_pass_learns_which_hypothesis_ends_nearest_and_plays_it(tmp_path: Path) -> None:
+def test_a_scoring_pass_learns_where_each_hypothesis_leaves_the_block_and_plays_the_nearest(tmp_path: Path) -> None:
     torch.manual_seed(0)
     teacher, _ = load_checkpoint(TEACHER)
     encoded = teacher.encode_state(torch.zeros(1, teacher.state_dim)).shape[1]
     head = OnePassChooser(encoded, (12, 2), [32], 3, [1.0], scorer_dims=[64])
     state_n = teacher.policy_state(torch.from_numpy(STATES))
     chunks_n = torch.randn(len(STATES), 3, 12, 2)
-    distances = torch.rand(len(STATES), 3) * 1e-2
+    changes = torch.randn(len(STATES), 3, 3)
+    rows = torch.from_numpy(STATES).repeat_interleave(3, dim=0)
+    nearest_ = goal_corner_distance(pose_after(rows, changes.reshape(-1, 3))).reshape(-1, 3).argmin(dim=1)
     optimizer = torch.optim.Adam(head.scorer.parameters(), lr=1e-2)
     for _ in range(300):
-        loss = head.scorer_loss(teacher, state_n, chunks_n, distances)
+        loss = head.scorer_loss(teacher, state_n, chunks_n, changes)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
     with torch.no_grad():
-        np.testing.assert_array_equal(head.scores(teacher, state_n, chunks_n).argmin(dim=1).numpy(), distances.argmin(dim=1).numpy())
+        torch.testing.assert_close(head.changes(teacher, state_n, chunks_n), changes, atol=0.25, rtol=0)  # the regret term pulls too
+        np.testing.assert_array_equal(head.scores(teacher, state_n, chunks_n).argmin(dim=1).numpy(), nearest_.numpy())
         head.forward = lambda flow, s: (chunks_n, torch.zeros(len(s), 3))  # the head's own scores no longer choose
-        want = chunks_n[torch.arange(len(STATES)), distances.argmin(dim=1)]
+        want = chunks_n[torch.arange(len(STATES)), nearest_]
         np.testing.assert_allclose(head.best_chunk(teacher, state_n, torch.randn(6, 12, 2)).numpy(), want.numpy(), atol=1e-6)
+    with pytest.raises(ValueError, match="not stretches"):
+        OnePassChooser(encoded, (12, 2), [32], 3, [1.0, 1.5], scorer_dims=[64])
 
 
 def test_a_second_pass_run_scores_a_multichoice_students_hypotheses_in_two_evaluations(tmp_path: Path) -> None:

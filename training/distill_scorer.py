@@ -2,8 +2,9 @@
 
 A multichoice student's hypotheses hold a better policy than its own scores play: the teacher's outcome
 model, choosing among them, plays within a few points of the chooser. That choice is a jump, but what the
-model predicts for each hypothesis is smooth in the state, so a second network pass
-(`OnePassChooser.scores`, `--scorer-dims`) regresses it, all K at once, and the argmin plays. The
+model predicts for each hypothesis (where it leaves the block) is smooth in the state, so a second network
+pass (`OnePassChooser.changes`, `--scorer-dims`) regresses it, all K at once; the goal distances follow
+exactly, and the nearest plays. The
 hypotheses stay frozen; the labels cost K outcome-model passes a state and no flow integration, so
 the scorer learns from every state the run holds and then, DAgger-style, from the states of episodes it
 plays itself (`--scorer-rounds`).
@@ -17,20 +18,20 @@ import time
 import numpy as np
 import torch
 
-__all__ = ["hypothesis_distances", "train_scorer"]
+__all__ = ["hypothesis_changes", "train_scorer"]
 
 LABEL_BATCH = 4096
 
 
 def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: torch.Generator) -> dict:
-    """Train `student.onepass.scorer` on the teacher's outcome model's goal distances of the student's hypotheses at the
+    """Train `student.onepass.scorer` on where the teacher's outcome model says the student's hypotheses leave the block at the
     network inputs `state_n` [N, S'] (then `cfg.scorer_rounds` rounds of its own episodes' states); returns the last evaluation."""
     from training.distill_data import decision_pairs
     from training.evaluate import evaluate_policy
     from training.policies import ActingPolicy
 
     head = student.onepass
-    distances = hypothesis_distances(student, teacher, state_n)
+    changes = hypothesis_changes(student, teacher, state_n)
     optimizer = torch.optim.AdamW(head.scorer.parameters(), lr=cfg.scorer_lr, weight_decay=0.0)
     seed = cfg.round_seed + cfg.teacher_episodes + cfg.rounds * cfg.round_episodes  # after the generator's episodes
     evaluation: dict = {}
@@ -39,12 +40,12 @@ def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: t
             visited, _, scores = decision_pairs(ActingPolicy(student.eval(), 1), cfg.round_episodes, seed)
             seed += cfg.round_episodes
             new = teacher.policy_state(torch.as_tensor(visited))
-            state_n, distances = torch.cat([state_n, new]), torch.cat([distances, hypothesis_distances(student, teacher, new)])
+            state_n, changes = torch.cat([state_n, new]), torch.cat([changes, hypothesis_changes(student, teacher, new)])
             run.log({"type": "scorer_round", "step": round_, "round": round_, "states": len(state_n), "elapsed_s": run.elapsed_s,
                      **{f"played_{k}": v for k, v in scores.items()}})
         steps = cfg.scorer_steps if round_ == 0 else cfg.scorer_steps // 2
         lr = cfg.scorer_lr if round_ == 0 else cfg.scorer_lr / 3
-        _fit(student, state_n, distances, optimizer, steps, lr, run, cfg, generator, round_)
+        _fit(student, state_n, changes, optimizer, steps, lr, run, cfg, generator, round_)
         student.eval()
         summary = evaluate_policy(ActingPolicy(student, 1), episodes=cfg.eval_episodes, seed=cfg.eval_seed)
         evaluation = {"scorer_round": round_, **{k: v for k, v in summary.scores().items() if k != "wall_time_s"}}
@@ -53,21 +54,22 @@ def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: t
 
 
 @torch.no_grad()
-def hypothesis_distances(student, teacher, state_n: torch.Tensor) -> torch.Tensor:
-    """[N, K]: the teacher's outcome model's goal distance after each of the student's K hypotheses at the inputs `state_n` [N, S']."""
+def hypothesis_changes(student, teacher, state_n: torch.Tensor) -> torch.Tensor:
+    """[N, K, 3]: where the teacher's outcome model says each of the student's K hypotheses at the inputs `state_n` [N, S']
+    leaves the block (its network's output: a move in the block's frame and a turn, scaled)."""
     from pusht.spec import ACTION_HIGH, ACTION_LOW
 
-    head, out = student.onepass, []
+    head, model, out = student.onepass, teacher.outcome.model, []
     for i in range(0, len(state_n), LABEL_BATCH):
         rows_n = state_n[i : i + LABEL_BATCH]
         chunks_n, _ = head(student, rows_n)
         state = teacher.normalizer.env_state(rows_n[:, : teacher.state_dim]).repeat_interleave(head.candidates, dim=0)
         actions = torch.clamp(teacher.normalizer.actions(state, chunks_n.reshape(-1, *head.chunk_shape)), ACTION_LOW, ACTION_HIGH)
-        out.append(teacher.outcome.goal_distance(state, actions).reshape(len(rows_n), head.candidates))
+        out.append(model.net(model.features(state, actions)).reshape(len(rows_n), head.candidates, 3))
     return torch.cat(out)
 
 
-def _fit(student, state_n, distances, optimizer, steps: int, lr: float, run, cfg, generator: torch.Generator, round_: int) -> None:
+def _fit(student, state_n, changes, optimizer, steps: int, lr: float, run, cfg, generator: torch.Generator, round_: int) -> None:
     """`steps` optimizer steps of `OnePassChooser.scorer_loss` on random batches (cosine from `lr`), logged as "scorer" records."""
     from tqdm import tqdm
 
@@ -80,7 +82,7 @@ def _fit(student, state_n, distances, optimizer, steps: int, lr: float, run, cfg
         rows = torch.randint(0, len(state_n), (cfg.batch_size,), generator=generator)
         with torch.no_grad():
             chunks_n, _ = head(student, state_n[rows])
-        loss = head.scorer_loss(student, state_n[rows], chunks_n, distances[rows])
+        loss = head.scorer_loss(student, state_n[rows], chunks_n, changes[rows])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

@@ -13,8 +13,8 @@ The same head serves a multiple-choice student (`training.distill --student mult
 al. 2012): K hypotheses of the chooser's one chosen chunk, trained winner-takes-all, and K scores that
 learn which hypothesis is nearest (`multichoice_loss`); it plays the best-scored one, unstretched. Its own scores
 only guess which hypothesis the chooser would pick; with `scorer_dims` a second pass (2 network evaluations) sees
-all K hypotheses, their targets in the block's frame as the outcome model sees them, and scores each as the
-teacher's outcome model would (`scorer_loss`): what plays is then the hypothesis predicted to end nearest the goal.
+all K hypotheses, their targets in the block's frame as the outcome model sees them, and predicts where each
+leaves the block as the teacher's outcome model would (`scorer_loss`): the one predicted nearest the goal plays.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from torch.nn import functional as F
 from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import KEYPOINT_FEATURES, tee_keypoints
 from training.networks import silu_mlp
-from training.outcome import agent_in_block_frame, stretch, targets_in_block_frame
+from training.outcome import agent_in_block_frame, goal_corner_distance, pose_after, stretch, targets_in_block_frame
 
 __all__ = ["CHOICE_WEIGHT", "EXTRA_FEATURES", "OnePassChooser", "head_features", "score_target", "winner_takes_all"]
 
@@ -57,7 +57,13 @@ class OnePassChooser(nn.Module):
         self.chunk_dim = self.chunk_shape[0] * self.chunk_shape[1]
         self.net = silu_mlp(encoded_dim + EXTRA_FEATURES, hidden_dims, self.candidates * self.chunk_dim + self.choices)
         # One plain MLP over the K hypotheses side by side (no weights shared across them): one network pass.
-        self.scorer = silu_mlp(encoded_dim + EXTRA_FEATURES + self.candidates * self.chunk_dim, scorer_dims, self.choices) if scorer_dims else None
+        # It predicts where each hypothesis leaves the block (as the outcome model's network: a move and a turn); the
+        # goal distances, where the choice's jumps lie, then follow exactly. Plain hypotheses only: no stretch.
+        self.scorer = None
+        if scorer_dims:
+            if self.stretches != (1.0,):
+                raise ValueError(f"a scoring pass scores plain hypotheses, not stretches {list(self.stretches)}")
+            self.scorer = silu_mlp(encoded_dim + EXTRA_FEATURES + self.candidates * self.chunk_dim, scorer_dims, self.candidates * 3)
 
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def forward(self, flow: nn.Module, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -67,27 +73,34 @@ class OnePassChooser(nn.Module):
         return out[:, :split].reshape(-1, self.candidates, *self.chunk_shape), out[:, split:]
 
     def scores(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor | None = None) -> torch.Tensor:
-        """The scores [B, K * S] that choose (lower: predicted closer to the goal): the second pass's over the hypotheses
-        `chunks_n` [B, K, H, A] (normalized; this head's own when None), else the head's own."""
-        if chunks_n is None or self.scorer is None:
-            own_chunks, own_scores = self(flow, state_n)
-            if self.scorer is None:
-                return own_scores
-            chunks_n = own_chunks
+        """The scores [B, K * S] that choose (lower: predicted closer to the goal): the second pass's, `score_target` of the
+        goal distances after the hypotheses `chunks_n` [B, K, H, A] (normalized; this head's own when None), else the head's own."""
+        if self.scorer is None:
+            return self(flow, state_n)[1]
+        if chunks_n is None:
+            chunks_n = self(flow, state_n)[0]
+        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
+        pose = pose_after(rows, self.changes(flow, state_n, chunks_n).reshape(-1, 3))
+        return score_target(goal_corner_distance(pose)).reshape(-1, self.candidates)
+
+    def changes(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor) -> torch.Tensor:
+        """The second pass: [B, K, 3] where each hypothesis [B, K, H, A] (normalized) leaves the block, in the outcome model's units."""
         state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
-        rows = state.unsqueeze(1).expand(-1, self.candidates, -1).reshape(-1, state.shape[1])
+        rows = state.repeat_interleave(self.candidates, dim=0)
         actions = torch.clamp(flow.normalizer.actions(rows, chunks_n.reshape(-1, *self.chunk_shape)), ACTION_LOW, ACTION_HIGH)
         frame = targets_in_block_frame(rows, actions).reshape(-1, self.candidates * self.chunk_dim)
-        return self.scorer(torch.cat([head_features(flow, state_n), frame], dim=1))
+        return self.scorer(torch.cat([head_features(flow, state_n), frame], dim=1)).reshape(-1, self.candidates, 3)
 
-    def scorer_loss(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
-        """The second pass's loss on hypotheses [B, K, H, A] whose outcome-model goal distances are [B, K * S]: the
-        squared error of its scores about their mean against `score_target`'s (the order is what acts, not the level),
-        plus the expected regret of a softmax pick (what a wrong pick costs, in those units)."""
-        scores, target = self.scores(flow, state_n, chunks_n), score_target(distances)
-        centred = F.mse_loss(scores - scores.mean(dim=1, keepdim=True), target - target.mean(dim=1, keepdim=True))
+    def scorer_loss(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, changes: torch.Tensor) -> torch.Tensor:
+        """The second pass's loss on hypotheses [B, K, H, A] that the teacher's outcome model says move the block by `changes`
+        [B, K, 3] (its network's output): their squared error, plus the expected regret of a softmax pick by the scores
+        (in `score_target` units: what a wrong pick costs)."""
+        predicted = self.changes(flow, state_n, chunks_n)
+        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
+        scores, target = (score_target(goal_corner_distance(pose_after(rows, c.reshape(-1, 3)))).reshape(-1, self.candidates)
+                          for c in (predicted, changes))
         regret = target - target.min(dim=1, keepdim=True).values
-        return centred + (torch.softmax(-scores / REGRET_TEMPERATURE, dim=1) * regret).sum(dim=1).mean()
+        return F.mse_loss(predicted, changes) + (torch.softmax(-scores / REGRET_TEMPERATURE, dim=1) * regret).sum(dim=1).mean()
 
     def loss(self, flow: nn.Module, state_n: torch.Tensor, candidates: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
         """Mean squared error of the candidates [B, K, H, A] (normalized) plus that of the scores against `score_target` of the

@@ -27,7 +27,7 @@ from training.features import tee_keypoints
 from training.networks import silu_mlp
 from training.selection import candidate_starts, orthogonal_maps
 
-__all__ = ["OutcomeModel", "OutcomeSelector", "agent_in_block_frame", "goal_corner_distance", "nearest", "stretch", "targets_in_block_frame"]
+__all__ = ["OutcomeModel", "OutcomeSelector", "agent_in_block_frame", "goal_corner_distance", "nearest", "pose_after", "stretch", "targets_in_block_frame"]
 
 DEFAULT_OUTCOME_DIMS = (512, 512, 512, 512)
 DEFAULT_OUTCOME_CANDIDATES = 16
@@ -48,11 +48,7 @@ class OutcomeModel(nn.Module):
 
     def forward(self, state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
         """The predicted block pose (x, y, angle) after the chunk, in env units."""
-        change = self.net(self.features(state, chunk)) * self.pose_scale
-        cos, sin = torch.cos(state[:, 4]), torch.sin(state[:, 4])
-        dx = cos * change[:, 0] - sin * change[:, 1]
-        dy = sin * change[:, 0] + cos * change[:, 1]
-        return torch.stack([state[:, 2] + dx, state[:, 3] + dy, state[:, 4] + change[:, 2]], dim=1)
+        return pose_after(state, self.net(self.features(state, chunk)))
 
     def features(self, state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
         """The model's input [B, F]: agent and targets in the block's frame, the block's place and heading."""
@@ -156,6 +152,16 @@ def stretch(state: torch.Tensor, actions: torch.Tensor, factor: float | torch.Te
     """Env-unit chunks [B, H, A] with every target `factor` times as far from the agent of states [B, S]: the same motion, faster."""
     agent = state[:, None, : actions.shape[-1]]
     return agent + factor * (actions - agent)
+
+
+def pose_after(state: torch.Tensor, change: torch.Tensor) -> torch.Tensor:
+    """The block's pose [B, 3] (env units) after a change [B, 3] in `OutcomeModel`'s units (its network's output: a move in
+    the block's frame, a turn) from states [B, S]."""
+    change = change * torch.tensor(_POSE_SCALE, dtype=change.dtype, device=change.device)
+    cos, sin = torch.cos(state[:, 4]), torch.sin(state[:, 4])
+    dx = cos * change[:, 0] - sin * change[:, 1]
+    dy = sin * change[:, 0] + cos * change[:, 1]
+    return torch.stack([state[:, 2] + dx, state[:, 3] + dy, state[:, 4] + change[:, 2]], dim=1)
 
 
 def targets_in_block_frame(state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
