@@ -68,7 +68,10 @@ class OnePassChooser(nn.Module):
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def forward(self, flow: nn.Module, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Normalized candidate chunks [B, K, H, A] and scores [B, K * S] (the K candidates at each stretch in turn) for the flow's inputs."""
-        out = self.net(head_features(flow, state_n))
+        return self._split(self.net(head_features(flow, state_n)))
+
+    def _split(self, out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first pass's output [B, K * H * A + K * S] as chunks [B, K, H, A] and scores [B, K * S]."""
         split = self.candidates * self.chunk_dim
         return out[:, :split].reshape(-1, self.candidates, *self.chunk_shape), out[:, split:]
 
@@ -79,17 +82,22 @@ class OnePassChooser(nn.Module):
             return self(flow, state_n)[1]
         if chunks_n is None:
             chunks_n = self(flow, state_n)[0]
-        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
-        pose = pose_after(rows, self.changes(flow, state_n, chunks_n).reshape(-1, 3))
-        return score_target(goal_corner_distance(pose)).reshape(-1, self.candidates)
+        return score_target(self._distances(flow, state_n, chunks_n, head_features(flow, state_n)))
 
-    def changes(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor) -> torch.Tensor:
-        """The second pass: [B, K, 3] where each hypothesis [B, K, H, A] (normalized) leaves the block, in the outcome model's units."""
-        state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
-        rows = state.repeat_interleave(self.candidates, dim=0)
+    def changes(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, features: torch.Tensor | None = None) -> torch.Tensor:
+        """The second pass: [B, K, 3] where each hypothesis [B, K, H, A] (normalized) leaves the block, in the outcome model's
+        units (`features`: `head_features` of `state_n`, if at hand)."""
+        features = head_features(flow, state_n) if features is None else features
+        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
         actions = torch.clamp(flow.normalizer.actions(rows, chunks_n.reshape(-1, *self.chunk_shape)), ACTION_LOW, ACTION_HIGH)
         frame = targets_in_block_frame(rows, actions).reshape(-1, self.candidates * self.chunk_dim)
-        return self.scorer(torch.cat([head_features(flow, state_n), frame], dim=1)).reshape(-1, self.candidates, 3)
+        return self.scorer(torch.cat([features, frame], dim=1)).reshape(-1, self.candidates, 3)
+
+    def _distances(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """[B, K]: the goal distances (`goal_corner_distance`) after the hypotheses, by the second pass."""
+        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
+        pose = pose_after(rows, self.changes(flow, state_n, chunks_n, features).reshape(-1, 3))
+        return goal_corner_distance(pose).reshape(-1, self.candidates)
 
     def scorer_loss(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, changes: torch.Tensor) -> torch.Tensor:
         """The second pass's loss on hypotheses [B, K, H, A] that the teacher's outcome model says move the block by `changes`
@@ -120,9 +128,12 @@ class OnePassChooser(nn.Module):
     def best_chunk(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """The normalized chunk [B, H, A]: the best-scored candidate at its stretch (a stretch s moves every target s times
         as far from the agent, as `training.outcome.OutcomeSelector` offers it). Deterministic: `noise` [B, H, A] is unused."""
-        chunks_n, scores = self(flow, state_n)
-        if self.scorer is not None:
-            scores = self.scores(flow, state_n, chunks_n)
+        if self.scorer is None:
+            chunks_n, scores = self(flow, state_n)
+        else:  # the features once for both passes, and the distances themselves: their argmin is the scores'
+            features = head_features(flow, state_n)
+            chunks_n, _ = self._split(self.net(features))
+            scores = self._distances(flow, state_n, chunks_n, features)
         # A zero term keeps `noise` an input of the exported graph, as the ONNX contract has every flow take it.
         best = (scores + 0.0 * noise.flatten(1)[:, :1]).argmin(dim=1)
         index = torch.remainder(best, self.candidates).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
