@@ -27,124 +27,22 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from pusht.spec import RESERVED_SEEDS
-from training.cli import build_parser, command_line, option
+from training.cli import build_parser, command_line
+from training.distill_config import DEFAULT_MULTICHOICE_DIMS, DEFAULT_ONEPASS_DIMS, DistillConfig
+
+__all__ = ["DistillConfig", "distill", "main", "outcome_term", "student_of"]
 
 PROG = "python -m training.distill"
 RESUMABLE_CHANGES = ("progress", "threads")
 CHOOSER_KEYS = ("outcome_dims", "outcome_candidates", "outcome_stretches")
 """Architecture keys of an outcome chooser, which a flow student does not take (it samples one chunk); a one-pass student
 keeps the candidates and stretches."""
-STUDENTS = ("flow", "one-pass", "multichoice")
-DEFAULT_ONEPASS_DIMS = "512,512,512,512"
-DEFAULT_MULTICHOICE_DIMS = "512,512,512"
-
-
-@dataclass
-class DistillConfig:
-    """Everything that defines a distillation run."""
-
-    teacher: str = option("models/flow", "flow checkpoint stem to distil (its noise_scale and steps define the map)")
-    teacher_steps: int = option(10, "Euler steps of the teacher's sampler")
-    student: str = option("flow", "flow: a plain flow sampling in --student-steps Euler steps; one-pass: an outcome chooser's "
-                                  "candidates and scores in one network pass (needs --fixed-noise); multichoice: --hypotheses chunks "
-                                  "and which to play in one network pass", choices=STUDENTS)
-    student_steps: int = option(1, "Euler steps (network evaluations) of a flow student")
-    hypotheses: int = option(8, "hypothesis chunks of a multichoice student")
-    relax: float = option(0.05, "share of a multichoice student's regression loss on the hypotheses not nearest the label")
-    top: int = option(1, "a multichoice student's labels per state: the chooser's that many best (candidate, stretch) chunks, "
-                         "each pulling its nearest hypothesis")
-    scorer_dims: str = option("", "comma-separated hidden widths of a multichoice student's second pass, which learns the "
-                                  "teacher's outcome model's goal distance of each hypothesis and chooses (2 network evaluations)")
-    scorer_steps: int = option(12_000, "optimizer steps of the second pass (half as many after each of its rounds)")
-    scorer_rounds: int = option(2, "rounds of the second pass: the student plays --round-episodes, the outcome model labels its hypotheses there")
-    scorer_lr: float = option(1e-3, "AdamW peak learning rate of the second pass (a third of it in its rounds)")
-    name: str = option("flow-distill", "run name; outputs go to OUT_DIR/NAME")
-    out_dir: str = option("runs", "parent folder of run folders")
-    data: str = option("data/pusht_lowdim.zarr", "demonstrations whose states are distilled")
-    extra_states: str = option("", "comma-separated zarr stores whose states join (e.g. policy rollouts)")
-    pairs: int = option(400_000, "(state, start noise, teacher chunk) triples drawn before training")
-    steps: int = option(40_000, "optimizer steps (0 with --scorer-dims: only the second pass of the --init student learns)")
-    batch_size: int = option(256, "batch size")
-    lr: float = option(1e-4, "AdamW peak learning rate (cosine decay to 0)")
-    eval_episodes: int = option(200, "episodes of the final evaluation")
-    eval_seed: int = option(400_000, "first evaluation episode seed (never a held-out one)")
-    log_every: int = option(200, "write a log record every N steps")
-    teacher_episodes: int = option(0, "episodes the teacher plays first (from --round-seed); their decision states join the pairs")
-    rounds: int = option(0, "DAgger rounds after the first training: the student plays, the teacher labels, training goes on")
-    round_episodes: int = option(1000, "episodes the student plays in each round")
-    round_seed: int = option(23_000_000, "first episode seed of the teacher's and the rounds' episodes (training seeds)")
-    init: str = option("", "start the student from this checkpoint stem (a student of the same teacher, e.g. a run's last, "
-                           "to go on with more rounds) instead of the teacher's flow")
-    student_hidden_dims: str = option("", "comma-separated hidden widths of a fresh student network (default: the teacher's "
-                                         f"flow, weights included; a one-pass student's: {DEFAULT_ONEPASS_DIMS}; "
-                                         f"a multichoice student's: {DEFAULT_MULTICHOICE_DIMS})")
-    fixed_noise: int = option(-1, "if >= 0: the teacher labels every state from the one start noise of this seed (a deterministic "
-                                  "policy), and the student, its start noise scaled to 0, copies that policy")
-    pairs_from: str = option("", "a distillation run folder whose saved pairs (pairs.safetensors, same teacher) replace the "
-                                 "demonstration and teacher pairs")
-    states_from: str = option("", "a distillation run folder whose saved pairs' states (pairs.safetensors, any labels) this run's "
-                                  "teacher labels anew (at most --pairs of them, drawn at random); they replace the demonstration and teacher pairs")
-    outcome_weight: float = option(0.0, "weight of the teacher's outcome-model distance to the goal after the student's chunk, "
-                                        "beside the regression (a chooser teacher only)")
-    outcome_root: bool = option(False, "weigh the root of that (mean squared corner) distance: steeper near the goal")
-    outcome_chunks: int = option(1, "chunks that outcome term looks ahead: after each the agent stands at the chunk's last target "
-                                    "and the block where the outcome model predicts, the student acts again there, and the "
-                                    "distances after each chunk add up (a model-based rollout; the student learns to set up pushes)")
-    seed: int = option(0, "seed of the pairs and of the batch order")
-    threads: int = option(1, "torch intra-op threads")
-    progress: bool = option(True, "show a tqdm progress bar on stderr")
-
-    def __post_init__(self) -> None:
-        for name in ("teacher_steps", "student_steps", "pairs", "batch_size", "eval_episodes", "log_every", "threads", "round_episodes",
-                     "outcome_chunks", "hypotheses", "top", "scorer_steps"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("teacher_episodes", "rounds", "scorer_rounds"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if self.round_seed in RESERVED_SEEDS:
-            raise ValueError(f"round_seed {self.round_seed} lies among the evaluation seeds {RESERVED_SEEDS.start}..{RESERVED_SEEDS.stop - 1}")
-        if self.student_hidden_dims and not all(w.strip().isdigit() and int(w) > 0 for w in self.student_hidden_dims.split(",")):
-            raise ValueError(f"student_hidden_dims must be comma-separated positive widths, got {self.student_hidden_dims!r}")
-        if not self.outcome_weight >= 0:
-            raise ValueError(f"outcome_weight must be >= 0, got {self.outcome_weight}")
-        if self.outcome_chunks > 1 and not self.outcome_weight:
-            raise ValueError("outcome_chunks looks ahead in the outcome term: give --outcome-weight too")
-        if self.student not in STUDENTS:
-            raise ValueError(f"student must be one of {STUDENTS}, got {self.student!r}")
-        if self.pairs_from and self.states_from:
-            raise ValueError("give --pairs-from (labelled pairs) or --states-from (states to label), not both")
-        if self.student == "one-pass" and (self.fixed_noise < 0 or self.outcome_weight):
-            raise ValueError("a one-pass student learns a chooser from one fixed start noise: give --fixed-noise SEED "
-                             "(and no --outcome-weight: it learns the chooser's own scores)")
-        if (self.top > 1 or self.scorer_dims) and self.student != "multichoice":
-            raise ValueError("--top and --scorer-dims belong to a multichoice student: give --student multichoice")
-        if self.scorer_dims and not all(w.strip().isdigit() and int(w) > 0 for w in self.scorer_dims.split(",")):
-            raise ValueError(f"scorer_dims must be comma-separated positive widths, got {self.scorer_dims!r}")
-        if self.steps < 1 and not self.scorer_dims:
-            raise ValueError(f"steps must be >= 1, got {self.steps}")
-        if self.scorer_dims and (self.steps or not self.init):
-            raise ValueError("--scorer-dims trains the second pass of a trained multichoice student: give --init CARD and --steps 0")
-        if not self.scorer_lr > 0:
-            raise ValueError(f"scorer_lr must be > 0, got {self.scorer_lr}")
-        if not 0 <= self.relax < 1:
-            raise ValueError(f"relax must be in [0, 1), got {self.relax}")
-        if not self.lr > 0:
-            raise ValueError(f"lr must be > 0, got {self.lr}")
-
-    def to_dict(self) -> dict:
-        """A JSON-ready dict of every field."""
-        return asdict(self)
-
-
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: 0 when finished, 2 on a bad setting."""
     from training.run import RunError
