@@ -81,7 +81,6 @@ def outcome_pick(teacher, args: argparse.Namespace) -> int:
     """Play the card's hypotheses as the teacher's outcome model picks them; print the scores (one JSON line)."""
     from pusht.spec import ACTION_HIGH, ACTION_LOW
     from training.distill_scorer import hypothesis_changes
-    from training.outcome import goal_corner_distance, pose_after
 
     student, _ = load_checkpoint(args.card)
     student.eval()
@@ -95,9 +94,7 @@ def outcome_pick(teacher, args: argparse.Namespace) -> int:
         def forward(self, state, noise=None, num_steps=None, prev_state=None):
             state_n = student.policy_state(state)
             chunks_n, _ = student.onepass(student, state_n)
-            k = chunks_n.shape[1]
-            pose = pose_after(state.repeat_interleave(k, 0), hypothesis_changes(student, teacher, state_n).reshape(-1, 3))
-            best = goal_corner_distance(pose).reshape(-1, k).argmin(dim=1)
+            best = student.onepass.goal_distances(student, state_n, hypothesis_changes(student, teacher, state_n)).argmin(dim=1)
             return torch.clamp(student.normalizer.actions(state, chunks_n[torch.arange(len(state)), best]), ACTION_LOW, ACTION_HIGH)
 
     scores = evaluate_policy(Pick(), episodes=args.episodes, seed=args.seed).scores()

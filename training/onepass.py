@@ -93,20 +93,22 @@ class OnePassChooser(nn.Module):
         frame = targets_in_block_frame(rows, actions).reshape(-1, self.candidates * self.chunk_dim)
         return self.scorer(torch.cat([features, frame], dim=1)).reshape(-1, self.candidates, 3)
 
-    def _distances(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-        """[B, K]: the goal distances (`goal_corner_distance`) after the hypotheses, by the second pass."""
+    def goal_distances(self, flow: nn.Module, state_n: torch.Tensor, changes: torch.Tensor) -> torch.Tensor:
+        """[B, K]: the goal distances (`goal_corner_distance`) after the K hypotheses move the block by `changes` [B, K, 3]
+        (the outcome model's units) from the flow's inputs `state_n`."""
         rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
-        pose = pose_after(rows, self.changes(flow, state_n, chunks_n, features).reshape(-1, 3))
-        return goal_corner_distance(pose).reshape(-1, self.candidates)
+        return goal_corner_distance(pose_after(rows, changes.reshape(-1, 3))).reshape(-1, self.candidates)
+
+    def _distances(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """[B, K]: the goal distances after the hypotheses, by the second pass."""
+        return self.goal_distances(flow, state_n, self.changes(flow, state_n, chunks_n, features))
 
     def scorer_loss(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, changes: torch.Tensor) -> torch.Tensor:
         """The second pass's loss on hypotheses [B, K, H, A] that the teacher's outcome model says move the block by `changes`
         [B, K, 3] (its network's output): their squared error, plus the expected regret of a softmax pick by the scores
         (in `score_target` units: what a wrong pick costs)."""
         predicted = self.changes(flow, state_n, chunks_n)
-        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
-        scores, target = (score_target(goal_corner_distance(pose_after(rows, c.reshape(-1, 3)))).reshape(-1, self.candidates)
-                          for c in (predicted, changes))
+        scores, target = (score_target(self.goal_distances(flow, state_n, c)) for c in (predicted, changes))
         regret = target - target.min(dim=1, keepdim=True).values
         return F.mse_loss(predicted, changes) + (torch.softmax(-scores / REGRET_TEMPERATURE, dim=1) * regret).sum(dim=1).mean()
 
