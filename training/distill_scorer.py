@@ -57,14 +57,10 @@ def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: t
 def hypothesis_changes(student, teacher, state_n: torch.Tensor) -> torch.Tensor:
     """[N, K, 3]: where the teacher's outcome model says each of the student's K hypotheses at the inputs `state_n` [N, S']
     leaves the block (its network's output: a move in the block's frame and a turn, scaled)."""
-    from pusht.spec import ACTION_HIGH, ACTION_LOW
-
     head, model, out = student.onepass, teacher.outcome.model, []
     for i in range(0, len(state_n), LABEL_BATCH):
         rows_n = state_n[i : i + LABEL_BATCH]
-        chunks_n, _ = head(student, rows_n)
-        state = teacher.normalizer.env_state(rows_n[:, : teacher.state_dim]).repeat_interleave(head.candidates, dim=0)
-        actions = torch.clamp(teacher.normalizer.actions(state, chunks_n.reshape(-1, *head.chunk_shape)), ACTION_LOW, ACTION_HIGH)
+        state, actions = head.hypothesis_actions(student, rows_n, head(student, rows_n)[0])
         out.append(model.net(model.features(state, actions)).reshape(len(rows_n), head.candidates, 3))
     return torch.cat(out)
 

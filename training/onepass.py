@@ -88,10 +88,14 @@ class OnePassChooser(nn.Module):
         """The second pass: [B, K, 3] where each hypothesis [B, K, H, A] (normalized) leaves the block, in the outcome model's
         units (`features`: `head_features` of `state_n`, if at hand)."""
         features = head_features(flow, state_n) if features is None else features
-        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
-        actions = torch.clamp(flow.normalizer.actions(rows, chunks_n.reshape(-1, *self.chunk_shape)), ACTION_LOW, ACTION_HIGH)
+        rows, actions = self.hypothesis_actions(flow, state_n, chunks_n)
         frame = targets_in_block_frame(rows, actions).reshape(-1, self.candidates * self.chunk_dim)
         return self.scorer(torch.cat([features, frame], dim=1)).reshape(-1, self.candidates, 3)
+
+    def hypothesis_actions(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each hypothesis [B, K, H, A] (normalized) as env-unit rows: its state [B * K, S] and clipped actions [B * K, H, A]."""
+        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
+        return rows, torch.clamp(flow.normalizer.actions(rows, chunks_n.reshape(-1, *self.chunk_shape)), ACTION_LOW, ACTION_HIGH)
 
     def goal_distances(self, flow: nn.Module, state_n: torch.Tensor, changes: torch.Tensor) -> torch.Tensor:
         """[B, K]: the goal distances (`goal_corner_distance`) after the K hypotheses move the block by `changes` [B, K, 3]
