@@ -11,8 +11,10 @@ client costs little CPU): p50/p99 latency at 1 connection (sequential requests) 
 at --connections concurrent connections, single-state flow requests with a seed. With
 --reference-rev, the service as of that git revision (service/ and pusht/ extracted with
 `git archive`) is measured too, alternated with the others, so a change is compared with what it
-replaces in one run. The load generator shares the machine's cores with the server: figures depend
-on what else runs.
+replaces in one run. With --floor, bench/floor_app.py (a fixed answer, no framework, no model)
+shows what uvicorn and this client take by themselves: no app's p50 is below it plus its model
+call. The load generator shares the machine's cores with the server: figures depend on what else
+runs.
 """
 
 from __future__ import annotations
@@ -66,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=5.0, help="seconds of the throughput run")
     parser.add_argument("--warmup", type=int, default=300, help="warm-up requests before each measurement")
     parser.add_argument("--rounds", type=int, default=1, help="alternate the two servers this many times; report each figure's median")
-    parser.add_argument("--only", choices=("baseline", "service", "reference"), default=None, help="run only one of the servers")
+    parser.add_argument("--only", choices=("baseline", "service", "reference", "floor"), default=None, help="run only one of the servers")
+    parser.add_argument("--floor", action="store_true", help="also bench bench/floor_app.py: a fixed answer, no framework or model (uvicorn's own floor)")
     parser.add_argument("--reference-rev", default=None, help="also bench the service as of this git revision (e.g. the last release)")
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
@@ -84,6 +87,8 @@ def main(argv: list[str] | None = None) -> int:
             "baseline": ("bench.baseline_app:app", {"BASELINE_ONNX": str(onnx_path)}, REPO),
             "service": ("service.app:app", {"PUSHT_MODELS_DIR": str(models_dir)}, REPO),
         }
+        if args.floor or args.only == "floor":
+            servers["floor"] = ("bench.floor_app:app", {}, REPO)
         if args.reference_rev:
             servers["reference"] = ("service.app:app", {"PUSHT_MODELS_DIR": str(models_dir)}, checkout_rev(args.reference_rev, Path(tmp)))
         rounds: dict[str, list[Figures]] = {}

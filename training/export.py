@@ -29,7 +29,9 @@ from acting.onnx_backend import onnx_session
 from pusht.spec import DEFAULT_NUM_STEPS
 from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, update_card
 from training.cli import HelpFormatter
+from training.onepass_graph import lean_graph
 from training.policies import ActingPolicy
+from training.quantize import agreement, quantize_generator
 
 OPSET = 18
 # Exported and torch actions must agree to this many pixels on random states (float32 rounding only).
@@ -50,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num-steps", type=int, default=None, help=f"flow: Euler steps unrolled into the graph (default: a distilled flow's own count, else {DEFAULT_NUM_STEPS})")
     parser.add_argument("--triton-repo", default=None, help="write each export as a Triton model repository entry DIR/NAME/1/model.onnx with its config.pbtxt instead")
     parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
+    parser.add_argument("--int8", action="store_true", help="a scoring student: its generator's matrix products in int8 (training.quantize), checked against the float32 graph")
     args = parser.parse_args(argv)
 
     if args.checkpoint is not None:
@@ -65,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     status = 0
     for stem, out in jobs:
         try:
-            info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset)
+            info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset, int8=args.int8)
             if args.triton_repo is not None:
                 from training.triton_repo import write_config
 
@@ -75,7 +78,8 @@ def main(argv: list[str] | None = None) -> int:
             status = 2
             continue
         note = "card updated" if info["card_updated"] else "not beside the card: card left unchanged"
-        print(f"{stem} -> {out} (inputs {info['inputs']}, outputs {info['outputs']}, opset {info['opset']}, max diff {info['max_abs_diff']:.2e} px; {note})")
+        int8 = f"; int8 generator: {info['int8']}" if "int8" in info else ""
+        print(f"{stem} -> {out} (inputs {info['inputs']}, outputs {info['outputs']}, opset {info['opset']}, max diff {info['max_abs_diff']:.2e} px{int8}; {note})")
     return status
 
 
@@ -86,10 +90,13 @@ def default_num_steps(stem: str | Path) -> int:
     return 1 if card.one_pass else int(card.sampler_steps or DEFAULT_NUM_STEPS)
 
 
-def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int | None = None, opset: int = OPSET) -> dict[str, Any]:
+def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int | None = None, opset: int = OPSET,
+                int8: bool = False) -> dict[str, Any]:
     """Export checkpoint `stem` to `out_path` (default STEM.onnx) and verify it; returns the onnx info (plus max_abs_diff).
 
-    `num_steps=None` unrolls the checkpoint's own count (`default_num_steps`).
+    `num_steps=None` unrolls the checkpoint's own count (`default_num_steps`). A scoring student exports as its lean
+    graph (`training.onepass_graph`), verified against the module like every export; `int8` then quantizes its
+    generator (`training.quantize`) and records how closely the result follows the float32 graph.
 
     The card records the export only when the file lies beside it, where the service looks for it;
     an export elsewhere leaves the card as it was.
@@ -106,7 +113,10 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
         raise ValueError(f"{out}: the output file must end in .onnx")
     acting = load_acting_policy(stem, num_steps=num_steps).eval()
     inputs = graph_inputs(acting)
-    graph = _GraphModule(acting, inputs).eval()
+    lean = lean_graph(acting.policy)
+    if int8 and lean is None:
+        raise ValueError(f"{stem}: --int8 quantizes a scoring student's generator; this checkpoint has none")
+    graph = _GraphModule(acting, inputs, lean).eval()
     example = _example_inputs(acting, batch=4, seed=0)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp.onnx")
@@ -116,6 +126,7 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
         except Exception as exc:  # torch.export / onnxscript raise their own error types
             raise ValueError(f"{stem}: ONNX export failed: {type(exc).__name__}: {exc}") from exc
         max_diff = verify_onnx(tmp, acting)
+        quantized = _quantize(tmp, acting) if int8 else None
         opset = _model_opset(tmp)  # the exporter may raise a requested opset; record what the file has
         tmp.replace(out)
     finally:
@@ -127,6 +138,8 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
         "num_steps": num_steps,  # meaningful for flow only; recorded for both so every card reads the same
         "opset": opset,
     }
+    if quantized is not None:
+        info["int8"] = quantized
     beside_card = out.resolve().parent == stem.resolve().parent
     if beside_card:
         update_card(stem, onnx=info)
@@ -162,6 +175,16 @@ def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...]
     return worst
 
 
+def _quantize(path: Path, acting: ActingPolicy, rows: int = 2048) -> dict[str, Any]:
+    """Quantize the file's generator in place; its layers and its agreement with the float32 graph on random states."""
+    example = _example_inputs(acting, batch=rows, seed=2000)
+    inputs = graph_inputs(acting)
+    feeds = {name: t.numpy() for name, t in zip(inputs, example)}
+    reference = onnx_session(path).run(["actions"], feeds)[0]
+    layers = quantize_generator(path)
+    return {"layers": layers, **agreement(reference, onnx_session(path).run(["actions"], feeds)[0])}
+
+
 def _model_opset(path: Path) -> int:
     import onnx
 
@@ -178,13 +201,16 @@ def graph_inputs(acting: ActingPolicy) -> list[str]:
 class _GraphModule(torch.nn.Module):
     """The exported signature: forward(*inputs) in the order `graph_inputs` names them."""
 
-    def __init__(self, acting: ActingPolicy, inputs: list[str]) -> None:
+    def __init__(self, acting: ActingPolicy, inputs: list[str], lean: torch.nn.Module | None = None) -> None:
         super().__init__()
         self.acting = acting
         self.inputs = inputs
+        self.lean = lean
 
     def forward(self, *args: torch.Tensor) -> torch.Tensor:
         named = dict(zip(self.inputs, args))
+        if self.lean is not None:  # the same function as `acting`, in fewer graph nodes
+            return self.lean(named["state"], named["noise"])
         return self.acting(named["state"], named.get("noise"), prev_state=named.get("prev_state"))
 
 

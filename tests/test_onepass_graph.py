@@ -1,0 +1,80 @@
+"""A scoring student's lean graph acts as its module does in a fraction of the ONNX nodes, and `--int8` quantizes only its
+generator, records how closely it follows the float32 graph, and is refused for any other checkpoint."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from acting import load_policy
+from training.checkpoint import load_acting_policy, load_card, load_checkpoint, save_checkpoint
+from training.distill import student_of
+from training.export import _GraphModule, _torch_export, export_onnx, graph_inputs, main
+from training.onepass_graph import LeanScoredChoice, lean_graph
+
+REPO = Path(__file__).resolve().parent.parent
+TEACHER = REPO / "records" / "flow-outcome16-stretch" / "last"
+
+
+def _scoring_student(tmp_path: Path) -> Path:
+    """A random scoring student (4 hypotheses, 2 x 32 generator and scorer) saved as a checkpoint; returns its stem."""
+    torch.manual_seed(0)
+    teacher, _ = load_checkpoint(TEACHER)
+    student = student_of(teacher, 0.0, onepass_dims="32,32", hypotheses=4, scorer_dims="32,32")
+    with torch.no_grad():  # outputs of the order of a trained head's, so the hypotheses differ by tens of pixels
+        for p in student.onepass.parameters():
+            p.mul_(3.0)
+    save_checkpoint(tmp_path / "student", student, steps=0, git_commit="test", evaluation=None)
+    return tmp_path / "student"
+
+
+def _states(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    low, high = torch.tensor([60.0, 60.0, 120.0, 120.0, 0.0]), torch.tensor([450.0, 450.0, 400.0, 400.0, 6.28])
+    return low + (high - low) * torch.rand(n, 5, generator=gen), torch.randn(n, 12, 2, generator=gen)
+
+
+def test_the_lean_graph_plays_the_modules_choice(tmp_path: Path) -> None:
+    acting = load_acting_policy(_scoring_student(tmp_path), num_steps=1).eval()
+    lean = LeanScoredChoice(acting.policy).eval()
+    state, noise = _states(2000, seed=1)
+    with torch.no_grad():
+        want, got = acting(state, noise), lean(state, noise)
+    worst = (want - got).abs().amax(dim=(1, 2))
+    assert float((worst > 1e-3).float().mean()) <= 0.005  # float rounding; only a near tie may pick another hypothesis
+    assert lean_graph(load_checkpoint(TEACHER)[0]) is None
+
+
+def test_the_lean_export_has_a_third_of_the_modules_nodes(tmp_path: Path) -> None:
+    stem = _scoring_student(tmp_path)
+    export_onnx(stem, tmp_path / "lean.onnx")
+    acting = load_acting_policy(stem, num_steps=1).eval()
+    inputs = graph_inputs(acting)
+    _torch_export(_GraphModule(acting, inputs).eval(), _states(4, seed=2), inputs, tmp_path / "module.onnx", 18)
+    lean, module = (len(onnx.load(str(tmp_path / f"{n}.onnx")).graph.node) for n in ("lean", "module"))
+    assert lean * 2 < module, (lean, module)
+
+
+def test_int8_quantizes_the_generator_only_and_records_its_agreement(tmp_path: Path, capsys) -> None:
+    stem = _scoring_student(tmp_path)
+    export_onnx(stem, stem.with_suffix(".onnx"))
+    state, noise = (t.numpy() for t in _states(256, seed=3))
+    plain = load_policy(stem.with_suffix(".onnx")).act(state, noise)
+    assert main(["--checkpoint", str(stem), "--int8"]) == 0
+    info = load_card(stem)["onnx"]["int8"]
+    assert info["layers"] == ["lean.gen.1.weight", "lean.gen.2.weight"] and "int8 generator" in capsys.readouterr().out
+    model = onnx.load(str(stem.with_suffix(".onnx")))
+    assert sum(n.op_type == "MatMulInteger" for n in model.graph.node) == 2
+    assert 0 <= info["median_px"] <= info["p90_px"] < 512
+    quantized = load_policy(stem.with_suffix(".onnx")).act(state, noise)
+    assert quantized.shape == plain.shape and np.all((quantized >= 0) & (quantized <= 512))
+    assert float(np.median(np.abs(quantized - plain).reshape(256, -1).max(axis=1))) < 20.0
+
+
+def test_int8_is_refused_for_a_checkpoint_without_a_scoring_pass(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="--int8 quantizes a scoring student"):
+        export_onnx(TEACHER, tmp_path / "t.onnx", int8=True)
