@@ -12,6 +12,8 @@ module's, so a choice between two hypotheses tied to about 1e-6 may differ; noth
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -24,9 +26,17 @@ __all__ = ["LeanScoredChoice", "lean_graph"]
 
 
 def lean_graph(flow: nn.Module) -> "LeanScoredChoice | None":
-    """The lean graph of a scoring student (a one-pass head with its second pass), None for any other policy."""
+    """The lean graph of a scoring student (a one-pass head with its second pass, the shipped flows' inputs), None for any other policy."""
+    return LeanScoredChoice(flow) if _fits(flow) else None
+
+
+def _fits(flow: nn.Module) -> bool:
+    """Whether the folding below holds: a scoring head, a 5-d state seen as z-scores and the angle's sine and cosine (no
+    history or pace input), actions relative to the agent."""
     head = getattr(flow, "onepass", None)
-    return None if head is None or head.scorer is None else LeanScoredChoice(flow)
+    return (head is not None and head.scorer is not None and head.stretches == (1.0,) and flow.state_dim == 5
+            and flow.angle_encoding == "sincos" and not flow.prev_state and not flow.pace_input
+            and flow.normalizer.action_frame == "agent")
 
 
 class LeanScoredChoice(nn.Module):
@@ -34,9 +44,9 @@ class LeanScoredChoice(nn.Module):
 
     def __init__(self, flow: nn.Module) -> None:
         super().__init__()
+        if not _fits(flow):
+            raise ValueError("a lean graph needs a scoring student of the shipped flows' inputs (see lean_graph)")
         head = flow.onepass
-        if head is None or head.scorer is None or head.stretches != (1.0,) or flow.state_dim != 5:
-            raise ValueError("a lean graph needs a 5-d flow with a one-pass head and its scoring pass")
         self.k, self.chunk_shape = head.candidates, head.chunk_shape
         with torch.no_grad():
             linear = _feature_map(flow)  # features [20] = z [10] @ linear[:10] + linear[10]
@@ -121,8 +131,6 @@ def _fold_scorer_first(layer: nn.Linear, linear: torch.Tensor) -> nn.Linear:
 
 def _fold_actions(layer: nn.Linear, flow: nn.Module, head: nn.Module) -> nn.Linear:
     """The generator's last layer giving the K hypotheses' env-unit actions less the agent (agent frame), score rows dropped."""
-    if flow.normalizer.action_frame != "agent":
-        raise ValueError("a lean graph needs an agent-frame flow")
     rows = head.candidates * head.chunk_dim
     std = flow.normalizer.action_std.double().expand(*head.chunk_shape).reshape(-1).repeat(head.candidates)
     mean = flow.normalizer.action_mean.double().expand(*head.chunk_shape).reshape(-1).repeat(head.candidates)
@@ -138,8 +146,6 @@ def _fold_changes(layer: nn.Linear, k: int) -> nn.Linear:
 
 def _corner_map() -> torch.Tensor:
     """[5, 12]: [d_x, d_y, cos a, sin a, 1] @ map = the tee's corners at (goal + d, a) less the goal's corners (x, y per corner)."""
-    import math
-
     gc, gs = math.cos(GOAL_POSE[2]), math.sin(GOAL_POSE[2])
     m = torch.zeros(5, 12, dtype=torch.float64)
     for k, (cx, cy) in enumerate(_CORNERS):
