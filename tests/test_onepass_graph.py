@@ -1,5 +1,6 @@
-"""A scoring student's lean graph acts as its module does in a fraction of the ONNX nodes, and `--int8` quantizes only its
-generator, records how closely it follows the float32 graph, and is refused for any other checkpoint."""
+"""A scoring student's lean graph acts as its module does in a fraction of the ONNX nodes, and --int8 quantizes only its
+generator (row by row: no row depends on its batch), records how closely it follows the float32 graph, and is
+refused for any other checkpoint."""
 
 from __future__ import annotations
 
@@ -70,9 +71,13 @@ def test_int8_quantizes_the_generator_only_and_records_its_agreement(tmp_path: P
     model = onnx.load(str(stem.with_suffix(".onnx")))
     assert sum(n.op_type == "MatMulInteger" for n in model.graph.node) == 2
     assert 0 <= info["median_px"] <= info["p90_px"] < 512
-    quantized = load_policy(stem.with_suffix(".onnx")).act(state, noise)
+    policy = load_policy(stem.with_suffix(".onnx"))
+    quantized = policy.act(state, noise)
     assert quantized.shape == plain.shape and np.all((quantized >= 0) & (quantized <= 512))
     assert float(np.median(np.abs(quantized - plain).reshape(256, -1).max(axis=1))) < 20.0
+    # Activations are scaled row by row: a row's actions do not depend on the rest of its call.
+    alone = np.concatenate([policy.act(state[i : i + 1], noise[i : i + 1]) for i in range(0, 256, 17)])
+    np.testing.assert_array_equal(alone, quantized[::17])
 
 
 def test_int8_is_refused_for_a_checkpoint_without_a_scoring_pass(tmp_path: Path) -> None:

@@ -1,17 +1,19 @@
-"""Int8 matrix products for an exported scoring student's generator (ONNX Runtime dynamic quantization).
+"""Int8 matrix products for an exported scoring student's generator, quantized row by row.
 
 At batch 1 a chunk's cost is reading the weights: int8 reads a quarter of the bytes. Only the generator's
-layers after its first are quantized (per-channel int8 weights, activations quantized per call): its
-hypotheses move by a pixel or so, and the scoring pass, kept in float32, scores the hypotheses it is
-given. Quantizing the scoring pass too changes which hypothesis plays and costs success (models/README.md).
-Float32 elsewhere: the first layers see pixel coordinates, which one int8 scale per call would crush.
+layers after its first are quantized: its hypotheses move by a few pixels, and the scoring pass, kept in
+float32, scores the hypotheses it is given (quantizing it too changes which hypothesis plays and costs
+success: models/README.md). The first layers see pixel coordinates beside sines, which one scale would crush.
+
+Weights are int8 with one scale per output unit. Activations get one scale per row (its largest magnitude
+/ 127, stored as uint8 around 128), computed in the graph: ONNX Runtime's dynamic quantization scales a
+whole call's tensor at once, so a row's actions would depend on the other rows of its batch, which the
+service's contract forbids (an answer never depends on what else was in the batch).
 """
 
 from __future__ import annotations
 
-import logging
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -25,24 +27,17 @@ GENERATOR_WEIGHT = re.compile(r"(^|\.)gen\.[1-9][0-9]*\.weight$")
 def quantize_generator(path: str | Path) -> list[str]:
     """Quantize, in place, the matrix products of the ONNX file's generator layers after the first; returns their weights' names."""
     import onnx
-    from onnx import helper, numpy_helper
-    from onnxruntime.quantization import QuantType, quantize_dynamic
 
     path = Path(path)
     model = onnx.load(str(path))
     weights = {init.name: init for init in model.graph.initializer}
-    nodes, chosen = [], []
+    nodes, added, chosen = [], [], []
     for node in model.graph.node:
-        if node.op_type == "Gemm" and len(node.input) > 1 and GENERATOR_WEIGHT.search(node.input[1]):
-            attrs = {a.name: helper.get_attribute_value(a) for a in node.attribute}
-            if attrs.get("transA", 0) or not attrs.get("transB", 0) or attrs.get("alpha", 1.0) != 1.0 or attrs.get("beta", 1.0) != 1.0:
-                raise ValueError(f"{path}: {node.name} is not a plain linear layer")
-            # MatMul + Add: the form the quantizer turns into an int8 product (weights transposed to [in, out]).
-            name = node.input[1] + "_in_out"
-            model.graph.initializer.append(numpy_helper.from_array(numpy_helper.to_array(weights[node.input[1]]).T.copy(), name))
-            product = node.output[0] + "_product"
-            nodes.append(helper.make_node("MatMul", [node.input[0], name], [product], name=node.name + "_matmul"))
-            nodes.append(helper.make_node("Add", [product, node.input[2]], [node.output[0]], name=node.name + "_bias"))
+        if node.op_type == "Gemm" and len(node.input) == 3 and GENERATOR_WEIGHT.search(node.input[1]):
+            _check_linear(node, path)
+            new, constants = _row_quantized_linear(node, weights)
+            nodes.extend(new)
+            added.extend(constants)
             chosen.append(node.input[1])
             continue
         nodes.append(node)
@@ -51,20 +46,11 @@ def quantize_generator(path: str | Path) -> list[str]:
     del model.graph.node[:]
     model.graph.node.extend(nodes)
     used = {name for node in model.graph.node for name in node.input}
-    kept = [init for init in model.graph.initializer if init.name in used]
+    kept = [init for init in [*model.graph.initializer, *added] if init.name in used]
     del model.graph.initializer[:]
     model.graph.initializer.extend(kept)
-    quiet = logging.getLogger()  # the quantizer logs advice on the root logger
-    level = quiet.level
-    with tempfile.TemporaryDirectory() as tmp:
-        plain = Path(tmp) / "plain.onnx"
-        onnx.save(model, str(plain))
-        quiet.setLevel(logging.ERROR)
-        try:
-            quantize_dynamic(str(plain), str(path), per_channel=True, weight_type=QuantType.QInt8,
-                             nodes_to_quantize=[n.name for n in nodes if n.name.endswith("_matmul")])
-        finally:
-            quiet.setLevel(level)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
     return chosen
 
 
@@ -73,3 +59,51 @@ def agreement(reference: np.ndarray, quantized: np.ndarray) -> dict[str, float]:
     rows of each row's largest difference, in px (a row whose hypotheses are near a tie may choose another one)."""
     worst = np.abs(quantized - reference).reshape(len(reference), -1).max(axis=1)
     return {"median_px": round(float(np.median(worst)), 3), "p90_px": round(float(np.percentile(worst, 90)), 3)}
+
+
+def _check_linear(node, path: Path) -> None:
+    from onnx import helper
+
+    attrs = {a.name: helper.get_attribute_value(a) for a in node.attribute}
+    if attrs.get("transA", 0) or not attrs.get("transB", 0) or attrs.get("alpha", 1.0) != 1.0 or attrs.get("beta", 1.0) != 1.0:
+        raise ValueError(f"{path}: {node.name} is not a plain linear layer (x @ W.T + b)")
+
+
+def _row_quantized_linear(node, weights: dict) -> tuple[list, list]:
+    """The nodes and constants of y = x @ W.T + b with int8 W (per output unit) and x quantized per row (uint8 around 128)."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    p, x, y = node.name or node.input[1], node.input[0], node.output[0]
+    w = numpy_helper.to_array(weights[node.input[1]]).astype(np.float64)  # [out, in]
+    w_scale = np.maximum(np.abs(w).max(axis=1), 1e-12) / 127.0
+    constants = {
+        "w": np.clip(np.round(w / w_scale[:, None]), -127, 127).astype(np.int8).T.copy(),  # [in, out]
+        "w_scale": w_scale.astype(np.float32),
+        "b": numpy_helper.to_array(weights[node.input[2]]).astype(np.float32),
+        "axis": np.array([1], dtype=np.int64),
+        "tiny": np.array(1e-12, dtype=np.float32),
+        "per_step": np.array(1.0 / 127.0, dtype=np.float32),
+        "mid": np.array(128.0, dtype=np.float32),
+        "zero_point": np.array(128, dtype=np.uint8),
+    }
+    c = {k: f"{p}_{k}" for k in constants}
+
+    def t(name: str) -> str:  # the layer's intermediate tensors
+        return f"{p}_{name}"
+
+    nodes = [
+        helper.make_node("Abs", [x], [t("abs")]),
+        helper.make_node("ReduceMax", [t("abs"), c["axis"]], [t("peak")], keepdims=1),
+        helper.make_node("Max", [t("peak"), c["tiny"]], [t("peak_safe")]),  # an all-zero row keeps a finite scale
+        helper.make_node("Mul", [t("peak_safe"), c["per_step"]], [t("scale")]),
+        helper.make_node("Div", [x, t("scale")], [t("steps")]),
+        helper.make_node("Round", [t("steps")], [t("rounded")]),
+        helper.make_node("Add", [t("rounded"), c["mid"]], [t("shifted")]),
+        helper.make_node("Cast", [t("shifted")], [t("x_q")], to=TensorProto.UINT8),
+        helper.make_node("MatMulInteger", [t("x_q"), c["w"], c["zero_point"]], [t("acc")]),
+        helper.make_node("Cast", [t("acc")], [t("acc_f")], to=TensorProto.FLOAT),
+        helper.make_node("Mul", [t("acc_f"), t("scale")], [t("row_scaled")]),
+        helper.make_node("Mul", [t("row_scaled"), c["w_scale"]], [t("product")]),
+        helper.make_node("Add", [t("product"), c["b"]], [y]),
+    ]
+    return nodes, [numpy_helper.from_array(v, c[k]) for k, v in constants.items()]
