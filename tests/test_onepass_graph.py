@@ -1,5 +1,5 @@
-"""A scoring student's lean graph acts as its module does in a fraction of the ONNX nodes, and --int8 quantizes only its
-generator (row by row: no row depends on its batch), records how closely it follows the float32 graph, and is
+"""A scoring student's lean graph acts as its module does in a fraction of the ONNX nodes, and --int8 quantizes its
+hidden layers (row by row: no row depends on its batch), records how closely it follows the float32 graph, and is
 refused for any other checkpoint."""
 
 from __future__ import annotations
@@ -60,16 +60,17 @@ def test_the_lean_export_has_a_third_of_the_modules_nodes(tmp_path: Path) -> Non
     assert lean * 2 < module, (lean, module)
 
 
-def test_int8_quantizes_the_generator_only_and_records_its_agreement(tmp_path: Path, capsys) -> None:
+def test_int8_quantizes_the_hidden_layers_and_records_their_agreement(tmp_path: Path, capsys) -> None:
     stem = _scoring_student(tmp_path)
     export_onnx(stem, stem.with_suffix(".onnx"))
     state, noise = (t.numpy() for t in _states(256, seed=3))
     plain = load_policy(stem.with_suffix(".onnx")).act(state, noise)
     assert main(["--checkpoint", str(stem), "--int8"]) == 0
     info = load_card(stem)["onnx"]["int8"]
-    assert info["layers"] == ["lean.gen.1.weight", "lean.gen.2.weight"] and "int8 generator" in capsys.readouterr().out
+    # The generator after its first layer, the scoring pass between its first and last (2 x 32: the one hidden product).
+    assert info["layers"] == ["lean.gen.1.weight", "lean.gen.2.weight", "lean.sco.1.weight"] and "int8:" in capsys.readouterr().out
     model = onnx.load(str(stem.with_suffix(".onnx")))
-    assert sum(n.op_type == "MatMulInteger" for n in model.graph.node) == 2
+    assert sum(n.op_type == "MatMulInteger" for n in model.graph.node) == 3
     assert 0 <= info["median_px"] <= info["p90_px"] < 512
     policy = load_policy(stem.with_suffix(".onnx"))
     quantized = policy.act(state, noise)
@@ -81,5 +82,5 @@ def test_int8_quantizes_the_generator_only_and_records_its_agreement(tmp_path: P
 
 
 def test_int8_is_refused_for_a_checkpoint_without_a_scoring_pass(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="--int8 quantizes a scoring student"):
+    with pytest.raises(ValueError, match="--int8 quantizes a scoring student's hidden layers"):
         export_onnx(TEACHER, tmp_path / "t.onnx", int8=True)

@@ -31,7 +31,7 @@ from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_po
 from training.cli import HelpFormatter
 from training.onepass_graph import lean_graph
 from training.policies import ActingPolicy
-from training.quantize import agreement, quantize_generator
+from training.quantize import agreement, quantize_hidden
 
 OPSET = 18
 # Exported and torch actions must agree to this many pixels on random states (float32 rounding only).
@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num-steps", type=int, default=None, help=f"flow: Euler steps unrolled into the graph (default: a distilled flow's own count, else {DEFAULT_NUM_STEPS})")
     parser.add_argument("--triton-repo", default=None, help="write each export as a Triton model repository entry DIR/NAME/1/model.onnx with its config.pbtxt instead")
     parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
-    parser.add_argument("--int8", action="store_true", help="a scoring student: its generator's matrix products in int8 (training.quantize), checked against the float32 graph")
+    parser.add_argument("--int8", action="store_true", help="a scoring student: its hidden layers' matrix products in int8 (training.quantize), checked against the float32 graph")
     args = parser.parse_args(argv)
 
     if args.checkpoint is not None:
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> int:
             status = 2
             continue
         note = "card updated" if info["card_updated"] else "not beside the card: card left unchanged"
-        int8 = f"; int8 generator: {info['int8']}" if "int8" in info else ""
+        int8 = f"; int8: {info['int8']}" if "int8" in info else ""
         print(f"{stem} -> {out} (inputs {info['inputs']}, outputs {info['outputs']}, opset {info['opset']}, max diff {info['max_abs_diff']:.2e} px{int8}; {note})")
     return status
 
@@ -96,7 +96,7 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
 
     `num_steps=None` unrolls the checkpoint's own count (`default_num_steps`). A scoring student exports as its lean
     graph (`training.onepass_graph`), verified against the module like every export; `int8` then quantizes its
-    generator (`training.quantize`) and records how closely the result follows the float32 graph.
+    hidden layers (`training.quantize`) and records how closely the result follows the float32 graph.
 
     The card records the export only when the file lies beside it, where the service looks for it;
     an export elsewhere leaves the card as it was.
@@ -115,7 +115,7 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
     inputs = graph_inputs(acting)
     lean = lean_graph(acting.policy)
     if int8 and lean is None:
-        raise ValueError(f"{stem}: --int8 quantizes a scoring student's generator; this checkpoint has none")
+        raise ValueError(f"{stem}: --int8 quantizes a scoring student's hidden layers; this checkpoint is no scoring student")
     graph = _GraphModule(acting, inputs, lean).eval()
     example = _example_inputs(acting, batch=4, seed=0)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -176,12 +176,12 @@ def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...]
 
 
 def _quantize(path: Path, acting: ActingPolicy, rows: int = 2048) -> dict[str, Any]:
-    """Quantize the file's generator in place; its layers and its agreement with the float32 graph on random states."""
+    """Quantize the file's hidden layers in place; their names and the agreement with the float32 graph on random states."""
     example = _example_inputs(acting, batch=rows, seed=2000)
     inputs = graph_inputs(acting)
     feeds = {name: t.numpy() for name, t in zip(inputs, example)}
     reference = onnx_session(path).run(["actions"], feeds)[0]
-    layers = quantize_generator(path)
+    layers = quantize_hidden(path)
     return {"layers": layers, **agreement(reference, onnx_session(path).run(["actions"], feeds)[0])}
 
 

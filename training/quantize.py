@@ -1,9 +1,9 @@
-"""Int8 matrix products for an exported scoring student's generator, quantized row by row.
+"""Int8 matrix products for an exported scoring student's hidden layers, quantized row by row.
 
-At batch 1 a chunk's cost is reading the weights: int8 reads a quarter of the bytes. Only the generator's
-layers after its first are quantized: its hypotheses move by a few pixels, and the scoring pass, kept in
-float32, scores the hypotheses it is given (quantizing it too changes which hypothesis plays and costs
-success: models/README.md). The first layers see pixel coordinates beside sines, which one scale would crush.
+At batch 1 a chunk's cost is reading the weights: int8 reads a quarter of the bytes. Quantized: the
+generator's layers after its first and the scoring pass's hidden layers. Float32: both first layers, which
+see pixel coordinates beside sines (one scale per row would crush the sines), and the scoring pass's last,
+whose few outputs decide which hypothesis plays and cost nothing to keep.
 
 Weights are int8 with one scale per output unit. Activations get one scale per row (its largest magnitude
 / 127, stored as uint8 around 128), computed in the graph: ONNX Runtime's dynamic quantization scales a
@@ -18,22 +18,26 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["GENERATOR_WEIGHT", "agreement", "quantize_generator"]
+__all__ = ["LAYER_WEIGHT", "agreement", "quantize_hidden"]
 
-GENERATOR_WEIGHT = re.compile(r"(^|\.)gen\.[1-9][0-9]*\.weight$")
-"""the initializers of `training.onepass_graph.LeanScoredChoice`'s generator layers after the first"""
+LAYER_WEIGHT = re.compile(r"(^|\.)(gen|sco)\.([0-9]+)\.weight$")
+"""the weights of `training.onepass_graph.LeanScoredChoice`'s layers: its generator's (gen.i) and scoring pass's (sco.i)"""
 
 
-def quantize_generator(path: str | Path) -> list[str]:
-    """Quantize, in place, the matrix products of the ONNX file's generator layers after the first; returns their weights' names."""
+def quantize_hidden(path: str | Path) -> list[str]:
+    """Quantize, in place, the ONNX file's generator layers after the first and scoring layers between its first and last;
+    returns their weights' names."""
     import onnx
 
     path = Path(path)
     model = onnx.load(str(path))
     weights = {init.name: init for init in model.graph.initializer}
+    layers = {m.group(0): (m.group(2), int(m.group(3))) for name in weights if (m := LAYER_WEIGHT.search(name))}
+    last_scoring = max((i for part, i in layers.values() if part == "sco"), default=-1)
+    quantized = {name for name, (part, i) in layers.items() if i > 0 and (part == "gen" or i < last_scoring)}
     nodes, added, chosen = [], [], []
     for node in model.graph.node:
-        if node.op_type == "Gemm" and len(node.input) == 3 and GENERATOR_WEIGHT.search(node.input[1]):
+        if node.op_type == "Gemm" and len(node.input) == 3 and _layer(node.input[1], quantized):
             _check_linear(node, path)
             new, constants = _row_quantized_linear(node, weights)
             nodes.extend(new)
@@ -42,7 +46,7 @@ def quantize_generator(path: str | Path) -> list[str]:
             continue
         nodes.append(node)
     if not chosen:
-        raise ValueError(f"{path}: no generator layers to quantize (a scoring student's lean graph has them)")
+        raise ValueError(f"{path}: no hidden layers to quantize (a scoring student's lean graph has them)")
     del model.graph.node[:]
     model.graph.node.extend(nodes)
     used = {name for node in model.graph.node for name in node.input}
@@ -52,6 +56,12 @@ def quantize_generator(path: str | Path) -> list[str]:
     onnx.checker.check_model(model)
     onnx.save(model, str(path))
     return chosen
+
+
+def _layer(weight: str, quantized: set[str]) -> bool:
+    """Whether the initializer `weight` (its name may carry a module prefix) is one of the `quantized` layers' weights."""
+    m = LAYER_WEIGHT.search(weight)
+    return m is not None and m.group(0) in quantized
 
 
 def agreement(reference: np.ndarray, quantized: np.ndarray) -> dict[str, float]:
