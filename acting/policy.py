@@ -15,7 +15,7 @@ from typing import Sequence
 import numpy as np
 
 from acting.card import Card, CardError
-from pusht.seeding import pad_rows, row_noise
+from pusht.seeding import BATCH_MULTIPLE, pad_rows, row_noise
 
 __all__ = ["Policy", "load_policy", "rollout_act"]
 
@@ -27,6 +27,8 @@ class Policy:
 
     backend = ""
     takes_prev_state = False
+    shares_zero_noise = False
+    """Whether `_run` may get one read-only zero-noise array for every call (its backend never writes an input)."""
 
     def __init__(self, card: Card) -> None:
         self.card = card
@@ -39,6 +41,7 @@ class Policy:
         # A flow whose start noise is scaled to 0 gets zeros: drawing noise from a seed costs ~10 us per request.
         self.uses_noise = card.uses_noise
         self._rng = np.random.default_rng()
+        self._zeros: dict[int, np.ndarray] = {}
 
     def act(self, states: np.ndarray, prev_states: np.ndarray | None = None, *, seeds: Sequence[int] | None = None,
             noise: np.ndarray | None = None, num_steps: int | None = None, noise_scale: float = 1.0) -> np.ndarray:
@@ -51,10 +54,13 @@ class Policy:
             raise ValueError(f"states must have shape [B >= 1, {self.state_dim}], got {list(states.shape)}")
         rows = len(states)
         if self.kind == "flow":
-            noise = self._noise(rows, seeds, noise)
-            if noise_scale != 1.0:
-                noise = noise * np.float32(noise_scale)
-            noise = pad_rows(noise)
+            if noise is None and seeds is None and not self.uses_noise and noise_scale == 1.0 and self.shares_zero_noise:
+                noise = self._zero_noise(rows + -rows % BATCH_MULTIPLE)  # already padded
+            else:
+                noise = self._noise(rows, seeds, noise)
+                if noise_scale != 1.0:
+                    noise = noise * np.float32(noise_scale)
+                noise = pad_rows(noise)
         prev = None
         if self.takes_prev_state:
             prev = states if prev_states is None else np.ascontiguousarray(prev_states, dtype=np.float32)
@@ -96,6 +102,16 @@ class Policy:
             raise CardError(f"{where}: returns shape {list(out.shape)}, its card says [B, {self.horizon}, {self.action_dim}]")
         if not np.isfinite(out).all():
             raise CardError(f"{where}: test output is not finite (NaN or inf): broken weights")
+
+    def _zero_noise(self, rows: int) -> np.ndarray:
+        """Read-only zero noise [rows, horizon, action_dim], kept for small batches (a service's usual calls)."""
+        zeros = self._zeros.get(rows)
+        if zeros is None:
+            zeros = np.zeros((rows, self.horizon, self.action_dim), dtype=np.float32)
+            zeros.flags.writeable = False
+            if rows <= 64:
+                self._zeros[rows] = zeros
+        return zeros
 
     def _noise(self, rows: int, seeds: Sequence[int] | None, noise: np.ndarray | None) -> np.ndarray:
         shape = (rows, self.horizon, self.action_dim)
