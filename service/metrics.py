@@ -2,11 +2,15 @@
 
 Each app gets its own registry, so several apps can live in one process (tests) without clashing.
 `MetricsMiddleware` is plain ASGI: it costs a few microseconds per request, unlike BaseHTTPMiddleware.
+Observations are appended to a buffer and folded into the Prometheus metrics in bulk (at every render,
+and every FOLD_EVERY observations): a model call evicts the CPU caches, and prometheus_client's locked
+observe calls, run cold once per request, cost ~25 us of a /act request's path; an append costs ~2.
 """
 
 from __future__ import annotations
 
 import time
+from collections import deque
 from typing import Any, Awaitable, Callable
 
 from prometheus_client import (
@@ -21,6 +25,9 @@ __all__ = ["Metrics", "MetricsMiddleware", "CONTENT_TYPE_LATEST"]
 
 _LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 _ROW_BUCKETS = (1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096)
+
+FOLD_EVERY = 256
+"""Buffered observations are folded into the metrics once this many wait (~0.5 ms, every 256 requests)."""
 
 
 class Metrics:
@@ -43,28 +50,54 @@ class Metrics:
         )
         self._request_children: dict[tuple[str, str, int], tuple[Any, Any]] = {}
         self._batch_children: dict[str, tuple[Any, Any]] = {}
+        # deque appends and pops are atomic: the worker threads' observe_batch needs no lock.
+        self._requests_seen: deque[tuple[str, str, int, float]] = deque()
+        self._batches_seen: deque[tuple[str, int, int]] = deque()
 
     def observe_request(self, route: str, method: str, status: int, seconds: float) -> None:
         """Count one HTTP request and record its latency."""
-        key = (route, method, status)
-        children = self._request_children.get(key)
-        if children is None:
-            # labels() costs a locked dict lookup and str(status) per call; cache the children instead.
-            children = (self.requests.labels(route, method, str(status)), self.latency.labels(route))
-            self._request_children[key] = children
-        children[0].inc()
-        children[1].observe(seconds)
+        seen = self._requests_seen
+        seen.append((route, method, status, seconds))
+        if len(seen) >= FOLD_EVERY:
+            self.fold()
 
     def observe_batch(self, policy: str, rows: int, requests: int) -> None:
         """Record one model call of `rows` state rows merged from `requests` requests."""
-        children = self._batch_children.get(policy)
-        if children is None:
-            children = self._batch_children[policy] = (self.batch_rows.labels(policy), self.batch_requests.labels(policy))
-        children[0].observe(rows)
-        children[1].observe(requests)
+        seen = self._batches_seen
+        seen.append((policy, rows, requests))
+        if len(seen) >= FOLD_EVERY:
+            self.fold()
+
+    def fold(self) -> None:
+        """Move the buffered observations into the Prometheus metrics."""
+        take = self._requests_seen.popleft
+        children_of = self._request_children
+        while True:
+            try:
+                route, method, status, seconds = take()
+            except IndexError:
+                break
+            key = (route, method, status)
+            children = children_of.get(key)
+            if children is None:
+                children = children_of[key] = (self.requests.labels(route, method, str(status)), self.latency.labels(route))
+            children[0].inc()
+            children[1].observe(seconds)
+        take_batch = self._batches_seen.popleft
+        while True:
+            try:
+                policy, rows, requests = take_batch()
+            except IndexError:
+                break
+            children = self._batch_children.get(policy)
+            if children is None:
+                children = self._batch_children[policy] = (self.batch_rows.labels(policy), self.batch_requests.labels(policy))
+            children[0].observe(rows)
+            children[1].observe(requests)
 
     def render(self) -> bytes:
         """The Prometheus text exposition of every metric."""
+        self.fold()
         return generate_latest(self.registry)
 
 
