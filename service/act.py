@@ -2,12 +2,21 @@
 
 `ActHandler` checks the key and the content type (415 unless JSON, so a cross-site form post never
 reaches a policy), reads the body under a size limit and a deadline (413 / 408 before parsing),
-validates it with the strict pydantic request model straight from the JSON bytes (~2 us), runs it
-through the policy's batcher while watching for the client hanging up (its queued rows are then
-dropped), and serializes with orjson. `ActFastPath`, a plain ASGI wrapper around the whole app, hands `POST /act` to
-it before Starlette's middleware and FastAPI's routing (which cost about as much per request as a
-batched model call per state); the FastAPI route of the same handler documents it in the OpenAPI
-schema and serves it when the router is used without the wrapper.
+validates it (the usual single-state body with orjson and a few checks, `single_state_request`; any
+other body with the strict pydantic request model, straight from the JSON bytes), runs it through
+the policy's batcher while watching for the client hanging up (its queued rows are then dropped),
+and serializes the actions with orjson behind the policy's fixed JSON prefix. `ActFastPath`, a plain
+ASGI wrapper around the whole app, hands `POST /act` to it before Starlette's middleware and
+FastAPI's routing (which cost about as much per request as a batched model call per state); the
+FastAPI route of the same handler documents it in the OpenAPI schema and serves it when the router
+is used without the wrapper.
+
+A lone request runs its model call inline, and a model of a few MB evicts the core's caches: the
+Python that follows, and the next request's until the model call, runs from L3, ~10x slower than in
+a warm microbenchmark (measured in process with the 8.8 MB flow student: ~210 us of path around the
+model call, against ~40 us with a stub model). So the path drops whole pieces of machinery rather
+than microseconds: one timer for all body deadlines of a loop instead of a timer per request, metrics
+appended to a buffer, a non-finite check that reads the serialized bytes, no pydantic for the usual body.
 """
 
 from __future__ import annotations
@@ -17,17 +26,20 @@ import hmac
 import json
 import logging
 import time
-from typing import Any, Awaitable, Callable
+import types
+import weakref
+from typing import Any, Awaitable, Callable, Generator
 
 import numpy as np
 import orjson
 from fastapi.responses import Response
 from pydantic import ValidationError
 
+from pusht.spec import STATE_DIM
 from service.batching import Batcher, Overloaded
-from service.guard import header_bytes, refuse_headers
-from service.schemas import act_request_model
-from service.settings import Settings
+from service.guard import refuse_headers
+from service.schemas import MAX_SEED, act_request_model
+from service.settings import MAX_NUM_STEPS, STATE_LIMIT, Settings
 from service.state import ServiceState
 
 __all__ = ["ActFastPath", "ActHandler", "ServiceError", "cap_errors", "check_key", "json_error", "read_body", "request_headers"]
@@ -76,16 +88,19 @@ class ActHandler:
         self.max_body = settings.max_body_bytes
         self.body_timeout = settings.body_timeout_s
         self.expected_key = settings.api_key.get_secret_value().encode() if settings.api_key else None
+        self._prefixes: dict[Any, bytes] = {}  # by policy object
 
-    async def __call__(self, service: ServiceState, scope: Scope, receive: Receive) -> tuple[int, bytes, dict[str, str] | None]:
-        """Answer one request; every problem becomes a JSON error with a 4xx/503 status."""
+    async def __call__(self, service: ServiceState, scope: Scope, receive: Receive,
+                       headers: dict[bytes, str] | None = None) -> tuple[int, bytes, dict[str, str] | None]:
+        """Answer one request (`headers`: its WANTED_HEADERS, if already picked); every problem becomes a JSON error with a 4xx/503 status."""
         try:
-            return 200, await self._act(service, scope, receive), None
+            return 200, await self._act(service, scope, receive, headers), None
         except ServiceError as exc:
             return exc.status, json.dumps({"detail": exc.detail}).encode(), exc.headers
 
-    async def _act(self, service: ServiceState, scope: Scope, receive: Receive) -> bytes:
-        headers = request_headers(scope, (b"content-length", b"content-type", b"x-api-key", b"authorization"))
+    async def _act(self, service: ServiceState, scope: Scope, receive: Receive, headers: dict[bytes, str] | None) -> bytes:
+        if headers is None:
+            headers = request_headers(scope, WANTED_HEADERS)
         if self.expected_key is not None:
             check_key(headers, self.expected_key)
         if not service.ready:
@@ -94,47 +109,99 @@ class ActHandler:
         if media_type != "application/json" and not media_type.endswith("+json"):
             raise ServiceError(415, f"the body must be JSON sent as 'Content-Type: application/json', got {media_type or 'none'!r}")
         body = await read_body(receive, headers.get(b"content-length"), self.max_body, self.body_timeout)
-        try:
-            req = self.request_model.model_validate_json(body)
-        except ValidationError as exc:
-            raise ServiceError(422, cap_errors(exc.errors(include_url=False, include_input=False, include_context=False))) from None
-        batcher = service.batchers.get(req.policy)
+        fields = single_state_request(body)
+        if fields is not None:
+            name, state, seed, num_steps = fields
+            seeds = rows = None
+        else:
+            try:
+                req = self.request_model.model_validate_json(body)
+            except ValidationError as exc:
+                raise ServiceError(422, cap_errors(exc.errors(include_url=False, include_input=False, include_context=False))) from None
+            name, state, seed, num_steps, rows, seeds = req.policy, req.state, req.seed, req.num_steps, req.states, req.seeds
+        batcher = service.batchers.get(name)
         if batcher is None:
-            raise ServiceError(404, f"unknown policy {req.policy!r}; loaded policies: {sorted(service.batchers)}")
+            raise ServiceError(404, f"unknown policy {name!r}; loaded policies: {sorted(service.batchers)}")
         policy = batcher.policy
-        num_steps = req.num_steps
         if policy.kind != "flow":
             if num_steps is not None:
                 raise ServiceError(422, [{"loc": ["num_steps"], "type": "value_error",
-                                          "msg": f"policy {req.policy!r} is an {policy.kind} policy: one network pass, no sampler steps; omit num_steps"}])
+                                          "msg": f"policy {name!r} is an {policy.kind} policy: one network pass, no sampler steps; omit num_steps"}])
         elif num_steps is not None:
             problem = policy.check_num_steps(num_steps)
             if problem is not None:
                 raise ServiceError(422, [{"loc": ["num_steps"], "msg": problem, "type": "value_error"}])
-        single = req.state is not None
-        states = np.array([req.state] if single else req.states, dtype=np.float32)
+        single = state is not None
+        states = np.array([state] if single else rows, dtype=np.float32)
         try:
-            future = batcher.enqueue(states, req.seed, num_steps, req.seeds)
+            future = batcher.enqueue(states, seed, num_steps, seeds)
         except Overloaded as exc:
             raise ServiceError(503, str(exc), {"Retry-After": "1"}) from None
-        actions = await await_actions(future, batcher, receive, len(states))
-        payload = {
-            "policy": policy.name,
-            "kind": policy.kind,
-            "backend": policy.backend,
-            "actions": np.ascontiguousarray(actions[0] if single else actions),
-        }
-        # orjson writes float32 arrays directly (shortest float32 repr): ~1 us instead of ~25 us for json.
-        return orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY)
+        actions = await await_actions(future, batcher, receive, len(states), check_finite=False)
+        return self._response(policy, actions[0] if single else actions)
+
+    def _response(self, policy: Any, actions: np.ndarray) -> bytes:
+        """The 200 body: the policy's fixed `{"policy":..,"kind":..,"backend":..,"actions":` prefix, then the actions.
+
+        orjson writes float32 arrays directly (shortest float32 repr) and a non-finite value as `null`, so a search
+        of the array's bytes is the finiteness check (numpy's isfinite + all, run cold, cost ~10 us more)."""
+        prefix = self._prefixes.get(policy)
+        if prefix is None:
+            head = orjson.dumps({"policy": policy.name, "kind": policy.kind, "backend": policy.backend})
+            prefix = self._prefixes[policy] = head[:-1] + b',"actions":'
+        try:
+            array = orjson.dumps(actions, option=orjson.OPT_SERIALIZE_NUMPY)
+        except TypeError:  # not C-contiguous
+            array = orjson.dumps(np.ascontiguousarray(actions), option=orjson.OPT_SERIALIZE_NUMPY)
+        if b"null" in array:
+            raise ServiceError(500, f"policy {policy.name!r} produced non-finite actions")
+        return prefix + array + b"}"
 
 
-async def await_actions(future: asyncio.Future, batcher: Batcher, receive: Receive, rows: int) -> np.ndarray:
-    """The actions of a queued request, every failure as a ServiceError; the rows are dropped if the client hangs up."""
-    policy = batcher.policy
-    # Watching the connection while a request waits behind real work lets a hang-up drop its rows
-    # (a task per request costs ~3 % CPU, so not when the queue is short).
-    watcher = asyncio.ensure_future(_drop_when_gone(receive, future, batcher)) if batcher.worth_watching() else None
+_SINGLE_STATE_KEYS = frozenset(("policy", "state", "seed", "num_steps"))
+
+
+def single_state_request(body: bytes) -> tuple[str, list, int | None, int | None] | None:
+    """(policy, state, seed, num_steps) of a valid body of the usual shape, `{"policy", "state"[, "seed"][, "num_steps"]}`;
+    None for any other body, which the pydantic request model then accepts or answers with its errors.
+
+    It accepts exactly what the model accepts for that shape (numbers as JSON numbers, finite and within +-STATE_LIMIT,
+    integer seed and num_steps in range, last duplicate key wins), with orjson and a few checks: the model, cold after a
+    model call, costs ~15 us more per request. `state` keeps JSON's ints, which become the same float32."""
     try:
+        data = orjson.loads(body)  # no NaN or Infinity tokens, nor overflowing literals: those go to the model
+    except orjson.JSONDecodeError:
+        return None
+    if type(data) is not dict or not _SINGLE_STATE_KEYS.issuperset(data):
+        return None
+    policy, state, seed, num_steps = data.get("policy"), data.get("state"), data.get("seed"), data.get("num_steps")
+    if type(policy) is not str or not 0 < len(policy) <= 200 or type(state) is not list or len(state) != STATE_DIM:
+        return None
+    for value in state:  # a bool is an int to Python, not to the model
+        if (type(value) is not float and type(value) is not int) or not -STATE_LIMIT <= value <= STATE_LIMIT:
+            return None
+    if seed is not None and (type(seed) is not int or not 0 <= seed <= MAX_SEED):
+        return None
+    if num_steps is not None and (type(num_steps) is not int or not 1 <= num_steps <= MAX_NUM_STEPS):
+        return None
+    return policy, state, seed, num_steps
+
+
+async def await_actions(future: asyncio.Future, batcher: Batcher, receive: Receive, rows: int, check_finite: bool = True) -> np.ndarray:
+    """The actions of a queued request, every failure as a ServiceError; the rows are dropped if the client hangs up.
+
+    `check_finite`: a 500 for non-finite actions (False: the caller checks them itself)."""
+    policy = batcher.policy
+    watcher = None
+    try:
+        if batcher.runs_alone():
+            # Its call, already scheduled, runs inline next iteration, before this task's next step: resumed then, the
+            # request finds its actions ready, one loop iteration (~15 us, cold) sooner than woken by the future.
+            await _one_iteration()
+        # Watching the connection while a request waits behind real work lets a hang-up drop its rows
+        # (a task per request costs ~3 % CPU, so not when the queue is short).
+        if not future.done() and batcher.worth_watching():
+            watcher = asyncio.ensure_future(_drop_when_gone(receive, future, batcher))
         actions = await future
     except ClientGone:
         raise ServiceError(400, "client disconnected before its actions were computed") from None
@@ -150,9 +217,15 @@ async def await_actions(future: asyncio.Future, batcher: Batcher, receive: Recei
     finally:
         if watcher is not None:
             watcher.cancel()
-    if not np.isfinite(actions).all():
+    if check_finite and not np.isfinite(actions).all():
         raise ServiceError(500, f"policy {policy.name!r} produced non-finite actions")
     return actions
+
+
+@types.coroutine
+def _one_iteration() -> Generator[None, None, None]:
+    """Yield to the event loop for one iteration (asyncio.sleep(0) without its frame)."""
+    yield
 
 
 async def _drop_when_gone(receive: Receive, future: asyncio.Future, batcher: Batcher) -> None:
@@ -187,13 +260,20 @@ class ActFastPath:
         start = time.perf_counter()
         status = 500  # until an answer is sent
         try:
-            size = header_bytes(scope)  # counted inline: an awaited guard coroutine costs more than the count
+            # One pass over the headers counts them (as guard.header_bytes: an awaited guard coroutine costs more than
+            # the count) and picks the handler's.
+            size = len(scope.get("raw_path") or b"") + len(scope.get("query_string") or b"")
+            headers = {}
+            for name, value in scope["headers"]:
+                size += len(name) + len(value) + 4
+                if name in WANTED_HEADERS:
+                    headers[name] = value.decode("latin-1")
             if size > self.max_header_bytes:
                 await refuse_headers(send, size, self.max_header_bytes)
                 status = 431
                 return
             try:
-                status, body, extra = await self.handler(scope["app"].state.service, scope, receive)
+                status, body, extra = await self.handler(scope["app"].state.service, scope, receive, headers)
             except Exception as exc:  # our bug; the client still gets JSON
                 log.exception("POST /act failed")
                 status, body, extra = 500, json.dumps({"detail": f"internal error: {type(exc).__name__}"}).encode(), None
@@ -206,7 +286,11 @@ class ActFastPath:
             self.metrics.observe_request("/act", "POST", status, time.perf_counter() - start)
 
 
-def request_headers(scope: Scope, wanted: tuple[bytes, ...]) -> dict[bytes, str]:
+WANTED_HEADERS = frozenset((b"content-length", b"content-type", b"x-api-key", b"authorization"))
+"""The request headers `POST /act` reads."""
+
+
+def request_headers(scope: Scope, wanted: tuple[bytes, ...] | frozenset[bytes]) -> dict[bytes, str]:
     """The `wanted` request headers (lower-case names) as latin-1 strings."""
     return {name: value.decode("latin-1") for name, value in scope["headers"] if name in wanted}
 
@@ -226,26 +310,79 @@ def check_key(headers: dict[bytes, str], expected: bytes) -> None:
 
 async def read_body(receive: Receive, declared: str | None, limit: int, timeout: float) -> bytes:
     """The body: 413 as soon as it exceeds `limit` bytes, 408 unless all of it arrives within `timeout` seconds."""
-    # asyncio.timeout's rules with a bare loop timer: its context manager costs ~4 us a request, the timer ~1.5 (/act
-    # spends ~40 us outside the model call). A cancellation from elsewhere (shutdown) still propagates as one.
+    # asyncio.timeout's rules, with one loop timer for every read in flight (_Deadlines): a timer per request, armed
+    # and cancelled cold after a model call, costs ~10 us more. A cancellation from elsewhere (shutdown) still
+    # propagates as one.
     task = asyncio.current_task()
     cancelling = task.cancelling()
-    expired: list[bool] = []
-    timer = asyncio.get_running_loop().call_later(timeout, _expire, task, expired)
+    deadlines = _deadlines(timeout)
+    deadlines.add(task)
     try:
         return await _read_body(receive, declared, limit)
     except asyncio.CancelledError:
-        if expired and task.uncancel() <= cancelling:
+        if deadlines.expired.pop(task, False) and task.uncancel() <= cancelling:
             raise ServiceError(408, f"the request body took longer than {timeout:g} s to arrive") from None
         raise
     finally:
-        timer.cancel()
+        deadlines.reads.pop(task, None)
 
 
-def _expire(task: asyncio.Task, expired: list[bool]) -> None:
-    """The body deadline passed: note it (so the cancellation becomes a 408) and cancel the read."""
-    expired.append(True)
-    task.cancel()
+class _Deadlines:
+    """The body deadlines of one event loop for one timeout: one timer, at the earliest deadline of the reads in flight.
+
+    Reads are added as they start, so `reads` (insertion-ordered) is in deadline order; a read that ends leaves it. The
+    timer cancels every read past its deadline, noting it in `expired` (the cancellation then becomes a 408), and
+    re-arms at the next read's deadline: each read is cancelled when its own deadline passes, as with a timer each."""
+
+    __slots__ = ("loop", "timeout", "reads", "expired", "timer")
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, timeout: float) -> None:
+        self.loop = loop
+        self.timeout = timeout
+        self.reads: dict[asyncio.Task, float] = {}
+        self.expired: dict[asyncio.Task, bool] = {}
+        self.timer: asyncio.TimerHandle | None = None
+
+    def add(self, task: asyncio.Task) -> None:
+        deadline = self.loop.time() + self.timeout
+        self.reads[task] = deadline
+        if self.timer is None:
+            self.timer = self.loop.call_at(deadline, self._expire)
+
+    def _expire(self) -> None:
+        self.timer = None
+        now = self.loop.time()
+        late = []
+        for task, deadline in self.reads.items():
+            if deadline > now:
+                self.timer = self.loop.call_at(deadline, self._expire)
+                break
+            late.append(task)
+        for task in late:
+            del self.reads[task]
+            self.expired[task] = True
+            task.cancel()
+
+
+_deadlines_by_loop: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, dict[float, _Deadlines]] = weakref.WeakKeyDictionary()
+_last_deadlines: _Deadlines | None = None
+
+
+def _deadlines(timeout: float) -> _Deadlines:
+    """The running loop's _Deadlines for `timeout` (usually the last one used)."""
+    global _last_deadlines
+    loop = asyncio.get_running_loop()
+    last = _last_deadlines
+    if last is not None and last.loop is loop and last.timeout == timeout:
+        return last
+    by_timeout = _deadlines_by_loop.get(loop)
+    if by_timeout is None:
+        by_timeout = _deadlines_by_loop[loop] = {}
+    deadlines = by_timeout.get(timeout)
+    if deadlines is None:
+        deadlines = by_timeout[timeout] = _Deadlines(loop, timeout)
+    _last_deadlines = deadlines
+    return deadlines
 
 
 async def _read_body(receive: Receive, declared: str | None, limit: int) -> bytes:

@@ -204,3 +204,46 @@ def test_num_steps_where_the_sampler_has_none_gets_a_422_and_policies_say_the_co
     stretches = len(arch.get("outcome_stretches", [1.0])) if arch.get("outcome_dims") else 0
     assert policies["flow"]["num_steps"] == 10
     assert policies["flow"]["network_evaluations"] == candidates * 10 + candidates * stretches
+
+
+def test_the_single_state_shortcut_accepts_exactly_what_the_request_model_accepts() -> None:
+    """service.act.single_state_request (orjson and a few checks, before the pydantic model) gives the model's fields for
+    every body the model accepts in its shape, and None for every other body: the model then answers as before."""
+    from pydantic import ValidationError
+
+    from service.act import single_state_request
+    from service.schemas import act_request_model
+
+    model = act_request_model(64)
+    texts = [json.dumps(body) for _, body in BAD_BODIES] + [
+        '{"policy": "flow", "state": [1, 2, 3, 4, 5]}', '{"policy":"flow","state":[1.5,2,3,4,-10000.0],"seed":0}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 9223372036854775807, "num_steps": 1}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 9223372036854775808}', '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": -1}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 18446744073709551616}', '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 1.0}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": true}', '{"policy": "f", "state": [1, 2, 3, 4, 5], "num_steps": 0}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "num_steps": 100000}', '{"policy": "f", "state": [1, 2, 3, 4, 5], "num_steps": null}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 10000.0001]}', '{"policy": "f", "state": [1, 2, 3, 4, 1e999]}',
+        '{"policy": "f", "state": [1, 2, 3, 4, NaN]}', '{"policy": "f", "state": [1, 2, 3, 4, Infinity]}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "state": null}', '{"policy": "f", "state": null, "state": [1, 2, 3, 4, 5]}',
+        '{"policy": "", "state": [1, 2, 3, 4, 5]}', '{"policy": "' + "p" * 200 + '", "state": [1, 2, 3, 4, 5]}',
+        '{"policy": "' + "p" * 201 + '", "state": [1, 2, 3, 4, 5]}', '{"policy": "\\u00e9\\ud800", "state": [1, 2, 3, 4, 5]}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seeds": [1]}', '{"policy": "f", "state": [1, 2, 3, 4, 5], "states": null}',
+        '\ufeff{"policy": "f", "state": [1, 2, 3, 4, 5]}', ' {"policy": "f", "state": [1, 2, 3, 4, 5]}\n', '[1, 2]', '"x"', '',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5]} x', '{"policy": "f", "state": [01, 2, 3, 4, 5]}', '{"policy": "f", "state": [-0.0, 2e3, 3E-2, 4, 5]}',
+    ]
+    shortcut_taken = 0
+    for text in texts:
+        body = text.encode("utf-8", "surrogatepass")
+        fields = single_state_request(body)
+        try:
+            req = model.model_validate_json(body)
+        except ValidationError:
+            assert fields is None, text
+            continue
+        if fields is None:
+            assert req.state is None or set(json.loads(text)) - {"policy", "state", "seed", "num_steps"}, text
+            continue
+        shortcut_taken += 1
+        assert fields == (req.policy, req.state, req.seed, req.num_steps), text
+        assert [type(v) for v in req.state] == [float] * 5 and all(float(a) == b for a, b in zip(fields[1], req.state)), text
+    assert shortcut_taken >= 5
