@@ -5,8 +5,8 @@ generator's layers after its first and the scoring pass's hidden layers. Float32
 see pixel coordinates beside sines (one scale per row would crush the sines), and the scoring pass's last,
 whose few outputs decide which hypothesis plays and cost nothing to keep.
 
-Weights are int8 with one scale per output unit. Activations get one scale per row (its largest magnitude
-/ 127, stored as uint8 around 128), computed in the graph: ONNX Runtime's dynamic quantization scales a
+Weights are int8 with one scale per output unit. Activations (SiLU outputs, lifted by its floor so none is
+negative) get one uint8 scale per row, computed in the graph: ONNX Runtime's dynamic quantization scales a
 whole call's tensor at once, so a row's actions would depend on the other rows of its batch, which the
 service's contract forbids (an answer never depends on what else was in the batch).
 """
@@ -18,7 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LAYER_WEIGHT", "agreement", "quantize_hidden"]
+__all__ = ["LAYER_WEIGHT", "SILU_FLOOR", "agreement", "quantize_hidden"]
+
+SILU_FLOOR = 0.2785
+"""just above -min SiLU (0.27846 at -1.278): every quantized layer's input plus this is positive"""
 
 LAYER_WEIGHT = re.compile(r"(^|\.)(gen|sco)\.([0-9]+)\.weight$")
 """the weights of `training.onepass_graph.LeanScoredChoice`'s layers: its generator's (gen.i) and scoring pass's (sco.i)"""
@@ -35,10 +38,13 @@ def quantize_hidden(path: str | Path) -> list[str]:
     layers = {m.group(0): (m.group(2), int(m.group(3))) for name in weights if (m := LAYER_WEIGHT.search(name))}
     last_scoring = max((i for part, i in layers.values() if part == "sco"), default=-1)
     quantized = {name for name, (part, i) in layers.items() if i > 0 and (part == "gen" or i < last_scoring)}
+    producers = {out: node for node in model.graph.node for out in node.output}
     nodes, added, chosen = [], [], []
     for node in model.graph.node:
         if node.op_type == "Gemm" and len(node.input) == 3 and _layer(node.input[1], quantized):
             _check_linear(node, path)
+            if not _silu_output(node.input[0], producers):
+                raise ValueError(f"{path}: the input of {node.name} is not a SiLU's output (x * sigmoid(x)), which the quantization assumes")
             new, constants = _row_quantized_linear(node, weights)
             nodes.extend(new)
             added.extend(constants)
@@ -56,6 +62,18 @@ def quantize_hidden(path: str | Path) -> list[str]:
     onnx.checker.check_model(model)
     onnx.save(model, str(path))
     return chosen
+
+
+def _silu_output(name: str, producers: dict) -> bool:
+    """Whether tensor `name` is x * Sigmoid(x) in the graph."""
+    mul = producers.get(name)
+    if mul is None or mul.op_type != "Mul":
+        return False
+    for a, b in (mul.input, mul.input[::-1]):
+        sigmoid = producers.get(b)
+        if sigmoid is not None and sigmoid.op_type == "Sigmoid" and sigmoid.input[0] == a:
+            return True
+    return False
 
 
 def _layer(weight: str, quantized: set[str]) -> bool:
@@ -80,21 +98,24 @@ def _check_linear(node, path: Path) -> None:
 
 
 def _row_quantized_linear(node, weights: dict) -> tuple[list, list]:
-    """The nodes and constants of y = x @ W.T + b with int8 W (per output unit) and x quantized per row (uint8 around 128)."""
+    """The nodes and constants of y = x @ W.T + b with int8 W (per output unit) and x, a SiLU output, quantized per row:
+    x + SILU_FLOOR is never negative, so uint8 with no zero point spans each row's range; the shift returns through the bias."""
     from onnx import TensorProto, helper, numpy_helper
 
     p, x, y = node.name or node.input[1], node.input[0], node.output[0]
     w = numpy_helper.to_array(weights[node.input[1]]).astype(np.float64)  # [out, in]
     w_scale = np.maximum(np.abs(w).max(axis=1), 1e-12) / 127.0
+    w_q = np.clip(np.round(w / w_scale[:, None]), -127, 127)
+    b = numpy_helper.to_array(weights[node.input[2]]).astype(np.float64)
     constants = {
-        "w": np.clip(np.round(w / w_scale[:, None]), -127, 127).astype(np.int8).T.copy(),  # [in, out]
+        "w": w_q.astype(np.int8).T.copy(),  # [in, out]
         "w_scale": w_scale.astype(np.float32),
-        "b": numpy_helper.to_array(weights[node.input[2]]).astype(np.float32),
+        # (x + floor) @ Wq.T = x @ Wq.T + floor * (row sums of Wq): subtracted here, in the dequantized weights' units
+        "b": (b - SILU_FLOOR * (w_q * w_scale[:, None]).sum(axis=1)).astype(np.float32),
+        "floor": np.array(SILU_FLOOR, dtype=np.float32),
         "axis": np.array([1], dtype=np.int64),
         "tiny": np.array(1e-12, dtype=np.float32),
-        "per_step": np.array(1.0 / 127.0, dtype=np.float32),
-        "mid": np.array(128.0, dtype=np.float32),
-        "zero_point": np.array(128, dtype=np.uint8),
+        "per_step": np.array(1.0 / 255.0, dtype=np.float32),
     }
     c = {k: f"{p}_{k}" for k in constants}
 
@@ -102,15 +123,14 @@ def _row_quantized_linear(node, weights: dict) -> tuple[list, list]:
         return f"{p}_{name}"
 
     nodes = [
-        helper.make_node("Abs", [x], [t("abs")]),
-        helper.make_node("ReduceMax", [t("abs"), c["axis"]], [t("peak")], keepdims=1),
-        helper.make_node("Max", [t("peak"), c["tiny"]], [t("peak_safe")]),  # an all-zero row keeps a finite scale
+        helper.make_node("Add", [x, c["floor"]], [t("lifted")]),
+        helper.make_node("ReduceMax", [t("lifted"), c["axis"]], [t("peak")], keepdims=1),
+        helper.make_node("Max", [t("peak"), c["tiny"]], [t("peak_safe")]),  # keeps the scale finite whatever the row
         helper.make_node("Mul", [t("peak_safe"), c["per_step"]], [t("scale")]),
-        helper.make_node("Div", [x, t("scale")], [t("steps")]),
+        helper.make_node("Div", [t("lifted"), t("scale")], [t("steps")]),
         helper.make_node("Round", [t("steps")], [t("rounded")]),
-        helper.make_node("Add", [t("rounded"), c["mid"]], [t("shifted")]),
-        helper.make_node("Cast", [t("shifted")], [t("x_q")], to=TensorProto.UINT8),
-        helper.make_node("MatMulInteger", [t("x_q"), c["w"], c["zero_point"]], [t("acc")]),
+        helper.make_node("Cast", [t("rounded")], [t("x_q")], to=TensorProto.UINT8),
+        helper.make_node("MatMulInteger", [t("x_q"), c["w"]], [t("acc")]),
         helper.make_node("Cast", [t("acc")], [t("acc_f")], to=TensorProto.FLOAT),
         helper.make_node("Mul", [t("acc_f"), t("scale")], [t("row_scaled")]),
         helper.make_node("Mul", [t("row_scaled"), c["w_scale"]], [t("product")]),
