@@ -67,10 +67,12 @@ def test_int8_quantizes_the_hidden_layers_and_records_their_agreement(tmp_path: 
     plain = load_policy(stem.with_suffix(".onnx")).act(state, noise)
     assert main(["--checkpoint", str(stem), "--int8"]) == 0
     info = load_card(stem)["onnx"]["int8"]
-    # The generator after its first layer, the scoring pass between its first and last (2 x 32: the one hidden product).
-    assert info["layers"] == ["lean.gen.1.weight", "lean.gen.2.weight", "lean.sco.1.weight"] and "int8:" in capsys.readouterr().out
+    # The generator after its first layer, the scoring pass's first layer's part on the hypotheses (signed pixels), and its
+    # layers between its first and last (2 x 32: the one hidden product).
+    layers = ["lean.gen.1.weight", "lean.gen.2.weight", "lean.frame.weight", "lean.sco.1.weight"]
+    assert info["layers"] == layers and "int8:" in capsys.readouterr().out
     model = onnx.load(str(stem.with_suffix(".onnx")))
-    assert sum(n.op_type == "MatMulInteger" for n in model.graph.node) == 3
+    assert sum(n.op_type == "MatMulInteger" for n in model.graph.node) == 4
     assert 0 <= info["median_px"] <= info["p90_px"] < 512
     policy = load_policy(stem.with_suffix(".onnx"))
     quantized = policy.act(state, noise)

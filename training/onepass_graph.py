@@ -6,8 +6,9 @@ of the chunk's cost. Here every linear step is folded into the networks' weights
 layers see are linear in ten numbers of the state (its four coordinates, the angle's sine and cosine, and the
 agent's offset from the block times them), the action statistics go into the generator's last layer, the
 block frame's scale into the scorer's first, the outcome units into its last; the goal distance of the tee's
-corners after each hypothesis is one small product with a constant matrix. Float rounding differs from the
-module's, so a choice between two hypotheses tied to about 1e-6 may differ; nothing else does.
+corners after each hypothesis is one small product with a constant matrix. The scorer's first layer is kept as
+two (on z, and on the hypotheses' targets: `frame`) so that `training.quantize` can take the second to int8
+and leave the first, which sees pixels beside sines, in float32. Float rounding differs from the module's, so a choice between two hypotheses tied to about 1e-6 may differ; nothing else does.
 """
 
 from __future__ import annotations
@@ -53,7 +54,8 @@ class LeanScoredChoice(nn.Module):
             gen = [m for m in head.net if isinstance(m, nn.Linear)]
             sco = [m for m in head.scorer if isinstance(m, nn.Linear)]
             self.gen = nn.ModuleList([_fold_first(gen[0], linear), *(_copy(m) for m in gen[1:-1]), _fold_actions(gen[-1], flow, head)])
-            self.sco = nn.ModuleList([_fold_scorer_first(sco[0], linear), *(_copy(m) for m in sco[1:-1]), _fold_changes(sco[-1], head.candidates)])
+            first, self.frame = _fold_scorer_first(sco[0], linear)
+            self.sco = nn.ModuleList([first, *(_copy(m) for m in sco[1:-1]), _fold_changes(sco[-1], head.candidates)])
             self.register_buffer("corners", _corner_map())  # [5, 12]: [d_x, d_y, cos, sin, 1] -> corner differences
             self.register_buffer("goal", torch.tensor(GOAL_POSE[:2], dtype=torch.float32))
 
@@ -70,8 +72,8 @@ class LeanScoredChoice(nn.Module):
         # [[cos, -sin], [sin, cos]]: rows @ it rotates world vectors into the block's frame, its transpose back out.
         to_block = torch.cat([cos, -sin, sin, cos], dim=1).reshape(-1, 2, 2)
         frame = torch.matmul(actions - block[:, None], to_block).flatten(1)
-        h = torch.cat([z, frame], dim=1)
-        for layer in self.sco[:-1]:
+        h = nn.functional.silu(self.sco[0](z) + self.frame(frame))  # one layer on [z, frame], split so the frame's part can go int8
+        for layer in self.sco[1:-1]:
             h = nn.functional.silu(layer(h))
         change = self.sco[-1](h).reshape(-1, self.k, 3)
         moved = torch.matmul(change[:, :, :2], to_block.transpose(1, 2)) + (block - self.goal)[:, None]
@@ -121,12 +123,13 @@ def _fold_first(layer: nn.Linear, linear: torch.Tensor) -> nn.Linear:
     return _linear((w @ linear[:10].double().T).float(), (layer.bias.double() + w @ linear[10].double()).float())
 
 
-def _fold_scorer_first(layer: nn.Linear, linear: torch.Tensor) -> nn.Linear:
-    """The scorer's first layer on [z, targets in the block's frame, unscaled] instead of [features, scaled targets]."""
+def _fold_scorer_first(layer: nn.Linear, linear: torch.Tensor) -> tuple[nn.Linear, nn.Linear]:
+    """The scorer's first layer on z (with its bias) and on the targets in the block's frame, unscaled (a zero bias), instead
+    of one layer on [features, scaled targets]."""
     w = layer.weight.double()
     features, targets = w[:, :20], w[:, 20:] / _FRAME_SCALE
-    return _linear(torch.cat([features @ linear[:10].double().T, targets], dim=1).float(),
-                   (layer.bias.double() + features @ linear[10].double()).float())
+    on_z = _linear((features @ linear[:10].double().T).float(), (layer.bias.double() + features @ linear[10].double()).float())
+    return on_z, _linear(targets.float(), torch.zeros(w.shape[0]))
 
 
 def _fold_actions(layer: nn.Linear, flow: nn.Module, head: nn.Module) -> nn.Linear:

@@ -1,9 +1,10 @@
 """Int8 matrix products for an exported scoring student's hidden layers, quantized row by row.
 
 At batch 1 a chunk's cost is reading the weights: int8 reads a quarter of the bytes. Quantized: the
-generator's layers after its first and the scoring pass's hidden layers. Float32: both first layers, which
-see pixel coordinates beside sines (one scale per row would crush the sines), and the scoring pass's last,
-whose few outputs decide which hypothesis plays and cost nothing to keep.
+generator's layers after its first, the scoring pass's first layer's part on the hypotheses' targets (signed
+pixels in the block's frame) and its hidden layers. Float32: the parts of both first layers on the state's
+ten numbers (pixel coordinates beside sines: one scale per row would crush the sines), and the scoring
+pass's last, whose few outputs decide which hypothesis plays and cost nothing to keep.
 
 Weights are int8 with one scale per output unit. Activations (SiLU outputs, lifted by its floor so none is
 negative) get one uint8 scale per row, computed in the graph: ONNX Runtime's dynamic quantization scales a
@@ -18,18 +19,20 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["LAYER_WEIGHT", "SILU_FLOOR", "agreement", "quantize_hidden"]
+__all__ = ["FRAME_WEIGHT", "LAYER_WEIGHT", "SILU_FLOOR", "agreement", "quantize_hidden"]
 
 SILU_FLOOR = 0.2785
 """just above -min SiLU (0.27846 at -1.278): every quantized layer's input plus this is positive"""
 
 LAYER_WEIGHT = re.compile(r"(^|\.)(gen|sco)\.([0-9]+)\.weight$")
 """the weights of `training.onepass_graph.LeanScoredChoice`'s layers: its generator's (gen.i) and scoring pass's (sco.i)"""
+FRAME_WEIGHT = re.compile(r"(^|\.)frame\.weight$")
+"""the scoring pass's first layer's part on the hypotheses' targets in the block's frame (signed pixels)"""
 
 
 def quantize_hidden(path: str | Path) -> list[str]:
-    """Quantize, in place, the ONNX file's generator layers after the first and scoring layers between its first and last;
-    returns their weights' names."""
+    """Quantize, in place, the ONNX file's generator layers after the first, the scoring pass's part on the hypotheses and its
+    layers between its first and last; returns their weights' names."""
     import onnx
 
     path = Path(path)
@@ -41,11 +44,13 @@ def quantize_hidden(path: str | Path) -> list[str]:
     producers = {out: node for node in model.graph.node for out in node.output}
     nodes, added, chosen = [], [], []
     for node in model.graph.node:
-        if node.op_type == "Gemm" and len(node.input) == 3 and _layer(node.input[1], quantized):
+        gemm = node.op_type == "Gemm" and len(node.input) >= 2
+        frame = gemm and FRAME_WEIGHT.search(node.input[1]) is not None
+        if frame or (gemm and _layer(node.input[1], quantized)):
             _check_linear(node, path)
-            if not _silu_output(node.input[0], producers):
+            if not frame and not _silu_output(node.input[0], producers):
                 raise ValueError(f"{path}: the input of {node.name} is not a SiLU's output (x * sigmoid(x)), which the quantization assumes")
-            new, constants = _row_quantized_linear(node, weights)
+            new, constants = _row_quantized_linear(node, weights, signed=frame)
             nodes.extend(new)
             added.extend(constants)
             chosen.append(node.input[1])
@@ -97,40 +102,53 @@ def _check_linear(node, path: Path) -> None:
         raise ValueError(f"{path}: {node.name} is not a plain linear layer (x @ W.T + b)")
 
 
-def _row_quantized_linear(node, weights: dict) -> tuple[list, list]:
-    """The nodes and constants of y = x @ W.T + b with int8 W (per output unit) and x, a SiLU output, quantized per row:
-    x + SILU_FLOOR is never negative, so uint8 with no zero point spans each row's range; the shift returns through the bias."""
+def _row_quantized_linear(node, weights: dict, signed: bool = False) -> tuple[list, list]:
+    """The nodes and constants of y = x @ W.T + b with int8 W (per output unit) and x quantized per row to uint8: a SiLU
+    output lifted by SILU_FLOOR (never negative: no zero point, the shift returns through the bias), or with `signed`
+    any x, scaled by its largest magnitude around 128."""
     from onnx import TensorProto, helper, numpy_helper
 
     p, x, y = node.name or node.input[1], node.input[0], node.output[0]
     w = numpy_helper.to_array(weights[node.input[1]]).astype(np.float64)  # [out, in]
     w_scale = np.maximum(np.abs(w).max(axis=1), 1e-12) / 127.0
     w_q = np.clip(np.round(w / w_scale[:, None]), -127, 127)
-    b = numpy_helper.to_array(weights[node.input[2]]).astype(np.float64)
+    has_bias = len(node.input) > 2 and node.input[2] != ""  # the exporter drops an all-zero bias
+    b = numpy_helper.to_array(weights[node.input[2]]).astype(np.float64) if has_bias else np.zeros(len(w))
+    lift = 0.0 if signed else SILU_FLOOR
     constants = {
         "w": w_q.astype(np.int8).T.copy(),  # [in, out]
         "w_scale": w_scale.astype(np.float32),
-        # (x + floor) @ Wq.T = x @ Wq.T + floor * (row sums of Wq): subtracted here, in the dequantized weights' units
-        "b": (b - SILU_FLOOR * (w_q * w_scale[:, None]).sum(axis=1)).astype(np.float32),
-        "floor": np.array(SILU_FLOOR, dtype=np.float32),
+        # (x + lift) @ Wq.T = x @ Wq.T + lift * (row sums of Wq): subtracted here, in the dequantized weights' units
+        "b": (b - lift * (w_q * w_scale[:, None]).sum(axis=1)).astype(np.float32),
         "axis": np.array([1], dtype=np.int64),
         "tiny": np.array(1e-12, dtype=np.float32),
-        "per_step": np.array(1.0 / 255.0, dtype=np.float32),
+        "per_step": np.array(1.0 / (127.0 if signed else 255.0), dtype=np.float32),
     }
+    if signed:
+        constants |= {"mid": np.array(128.0, dtype=np.float32), "zero_point": np.array(128, dtype=np.uint8)}
+    else:
+        constants["floor"] = np.array(SILU_FLOOR, dtype=np.float32)
     c = {k: f"{p}_{k}" for k in constants}
 
     def t(name: str) -> str:  # the layer's intermediate tensors
         return f"{p}_{name}"
 
+    if signed:
+        head = [helper.make_node("Abs", [x], [t("magnitude")]),
+                helper.make_node("ReduceMax", [t("magnitude"), c["axis"]], [t("peak")], keepdims=1)]
+    else:
+        head = [helper.make_node("Add", [x, c["floor"]], [t("lifted")]),
+                helper.make_node("ReduceMax", [t("lifted"), c["axis"]], [t("peak")], keepdims=1)]
+    source = x if signed else t("lifted")
     nodes = [
-        helper.make_node("Add", [x, c["floor"]], [t("lifted")]),
-        helper.make_node("ReduceMax", [t("lifted"), c["axis"]], [t("peak")], keepdims=1),
+        *head,
         helper.make_node("Max", [t("peak"), c["tiny"]], [t("peak_safe")]),  # keeps the scale finite whatever the row
         helper.make_node("Mul", [t("peak_safe"), c["per_step"]], [t("scale")]),
-        helper.make_node("Div", [t("lifted"), t("scale")], [t("steps")]),
+        helper.make_node("Div", [source, t("scale")], [t("steps")]),
         helper.make_node("Round", [t("steps")], [t("rounded")]),
-        helper.make_node("Cast", [t("rounded")], [t("x_q")], to=TensorProto.UINT8),
-        helper.make_node("MatMulInteger", [t("x_q"), c["w"]], [t("acc")]),
+        *([helper.make_node("Add", [t("rounded"), c["mid"]], [t("shifted")])] if signed else []),
+        helper.make_node("Cast", [t("shifted") if signed else t("rounded")], [t("x_q")], to=TensorProto.UINT8),
+        helper.make_node("MatMulInteger", [t("x_q"), c["w"], *([c["zero_point"]] if signed else [])], [t("acc")]),
         helper.make_node("Cast", [t("acc")], [t("acc_f")], to=TensorProto.FLOAT),
         helper.make_node("Mul", [t("acc_f"), t("scale")], [t("row_scaled")]),
         helper.make_node("Mul", [t("row_scaled"), c["w_scale"]], [t("product")]),
