@@ -253,6 +253,7 @@ def test_setting_the_candidate_count_keeps_every_learned_weight_and_the_first_ma
     assert torch.equal(after["outcome.rotations"][:4], before["outcome.rotations"])
     assert loaded["config"] == {"algo": "outcome", "candidates": 4}  # the fit's own config stays
     assert reproduce_commands(loaded, Path("runs/c"), "flow")[1].endswith("--outcome-candidates 8")
+    assert reproduce_commands(loaded, Path("runs/c"), "flow", int8=True)[1].endswith("--outcome-candidates 8 --int8")
     save_checkpoint(tmp_path / "plain", *load_checkpoint(SHIPPED)[:1])
     with pytest.raises(ValueError, match="outcome chooser"):
         set_outcome_candidates(tmp_path / "plain", 8)
