@@ -121,11 +121,11 @@ def _row_quantized_linear(node, weights: dict, signed: bool = False) -> tuple[li
         # (x + lift) @ Wq.T = x @ Wq.T + lift * (row sums of Wq): subtracted here, in the dequantized weights' units
         "b": (b - lift * (w_q * w_scale[:, None]).sum(axis=1)).astype(np.float32),
         "axis": np.array([1], dtype=np.int64),
-        "tiny": np.array(1e-12, dtype=np.float32),
         "per_step": np.array(1.0 / (127.0 if signed else 255.0), dtype=np.float32),
     }
     if signed:
-        constants |= {"mid": np.array(128.0, dtype=np.float32), "zero_point": np.array(128, dtype=np.uint8)}
+        constants |= {"mid": np.array(128.0, dtype=np.float32), "zero_point": np.array(128, dtype=np.uint8),
+                      "tiny": np.array(1e-12, dtype=np.float32)}
     else:
         constants["floor"] = np.array(SILU_FLOOR, dtype=np.float32)
     c = {k: f"{p}_{k}" for k in constants}
@@ -133,17 +133,17 @@ def _row_quantized_linear(node, weights: dict, signed: bool = False) -> tuple[li
     def t(name: str) -> str:  # the layer's intermediate tensors
         return f"{p}_{name}"
 
-    if signed:
+    if signed:  # an all-zero row would have no scale: the tiny floor keeps it finite
         head = [helper.make_node("Abs", [x], [t("magnitude")]),
-                helper.make_node("ReduceMax", [t("magnitude"), c["axis"]], [t("peak")], keepdims=1)]
-    else:
+                helper.make_node("ReduceMax", [t("magnitude"), c["axis"]], [t("largest")], keepdims=1),
+                helper.make_node("Max", [t("largest"), c["tiny"]], [t("peak")])]
+    else:  # a lifted SiLU output is at least 3.5e-5: its peak is never zero
         head = [helper.make_node("Add", [x, c["floor"]], [t("lifted")]),
                 helper.make_node("ReduceMax", [t("lifted"), c["axis"]], [t("peak")], keepdims=1)]
     source = x if signed else t("lifted")
     nodes = [
         *head,
-        helper.make_node("Max", [t("peak"), c["tiny"]], [t("peak_safe")]),  # keeps the scale finite whatever the row
-        helper.make_node("Mul", [t("peak_safe"), c["per_step"]], [t("scale")]),
+        helper.make_node("Mul", [t("peak"), c["per_step"]], [t("scale")]),
         helper.make_node("Div", [source, t("scale")], [t("steps")]),
         helper.make_node("Round", [t("steps")], [t("rounded")]),
         *([helper.make_node("Add", [t("rounded"), c["mid"]], [t("shifted")])] if signed else []),
