@@ -21,7 +21,8 @@ from fastapi.staticfiles import StaticFiles
 from starlette.applications import Starlette
 
 from service import protocol
-from service.act import ActFastPath, ActHandler, ServiceError, cap_errors, json_error
+from service.act import ActFastPath, ActHandler
+from service.request_input import ServiceError, cap_errors, json_error
 from service.backends import ModelLoadError, load_policies
 from service.batching import Batcher
 from service.guard import HeaderLimit, QuietStartupFailure, Refusal

@@ -20,7 +20,8 @@ from fastapi import APIRouter, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, ValidationError
 
-from service.act import ServiceError, await_actions, cap_errors, check_key, read_body, request_headers
+from service.act import await_actions
+from service.request_input import ServiceError, cap_errors, check_key, read_body, request_headers
 from acting import Policy
 from service.batching import Batcher, Overloaded
 from service.oip_tensors import VERSION, InferRequest, answer, input_tensors, invalid, model_metadata, split_body

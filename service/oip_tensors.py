@@ -15,7 +15,7 @@ import orjson
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt
 
-from service.act import ServiceError
+from service.request_input import ServiceError
 from acting import Policy
 from service.schemas import MAX_SEED
 from service.settings import STATE_LIMIT

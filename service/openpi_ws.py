@@ -22,7 +22,7 @@ import numpy as np
 from fastapi import APIRouter, WebSocket
 from fastapi.responses import Response
 
-from service.act import ServiceError, request_headers
+from service.request_input import ServiceError, request_headers
 from service.batching import Batcher, Overloaded
 from service.schemas import MAX_SEED
 from service.settings import STATE_LIMIT, Settings

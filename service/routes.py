@@ -16,7 +16,8 @@ from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, Response
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from service.act import ActHandler, ServiceError, check_key, json_error, request_headers
+from service.act import ActHandler
+from service.request_input import ServiceError, check_key, json_error, request_headers
 from service.metrics import CONTENT_TYPE_LATEST
 from service.schemas import ActResponse, ErrorResponse, PoliciesResponse, PolicyInfo
 from service.settings import Settings

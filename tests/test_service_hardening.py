@@ -165,7 +165,7 @@ def test_a_body_that_never_finishes_gets_408(server: UvicornProcess) -> None:
 
 def test_the_body_deadline_is_a_408_but_a_shutdown_still_cancels() -> None:
     """read_body keeps asyncio.timeout's rules: its own deadline is a 408, a cancellation from elsewhere propagates."""
-    from service.act import ServiceError, read_body
+    from service.request_input import ServiceError, read_body
 
     async def never() -> dict:
         await asyncio.sleep(3600)
