@@ -254,6 +254,8 @@ def test_setting_the_candidate_count_keeps_every_learned_weight_and_the_first_ma
     assert loaded["config"] == {"algo": "outcome", "candidates": 4}  # the fit's own config stays
     assert reproduce_commands(loaded, Path("runs/c"), "flow")[1].endswith("--outcome-candidates 8")
     assert reproduce_commands(loaded, Path("runs/c"), "flow", int8=True)[1].endswith("--outcome-candidates 8 --int8")
+    distilled = {**loaded, "reproduce": {"distill": "python -m training.distill --student multichoice"}}
+    assert reproduce_commands(distilled, Path("runs/d"), "flow", int8=True)[0] == "python -m training.distill --student multichoice"
     save_checkpoint(tmp_path / "plain", *load_checkpoint(SHIPPED)[:1])
     with pytest.raises(ValueError, match="outcome chooser"):
         set_outcome_candidates(tmp_path / "plain", 8)

@@ -179,8 +179,10 @@ def write_record(run: Path, record: Path, final: dict[str, Any], best: dict[str,
 
 def reproduce_commands(card: dict[str, Any], run: Path, name: str, int8: bool = False) -> list[str]:
     """The training (or fine-tuning) command that made the run and the ship command that made `models/NAME`."""
-    # a fine-tuned run's card carries its own command; its config is not a training.train config
-    made = (card.get("reproduce") or {}).get("finetune") if isinstance(card.get("reproduce"), dict) else None
+    # a fine-tuned or distilled run's card carries its own command; its config is not a training.train config
+    made = None
+    if isinstance(card.get("reproduce"), dict):
+        made = card["reproduce"].get("finetune") or card["reproduce"].get("distill")
     ship_command = f"python -m training.ship --run {run} --name {name}"
     scale = card["architecture"].get("noise_scale")
     if scale is not None:
