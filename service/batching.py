@@ -212,17 +212,6 @@ class Batcher:
             pending.popleft()
         if not pending:
             return []
-        if len(pending) == 1 and len(pending[0].states) - pending[0].taken <= BATCH_MULTIPLE:
-            # A lone request of at most one padded group (the usual one at low load): what the general rule below takes,
-            # all of it (a call always may take BATCH_MULTIPLE rows), with the same bookkeeping, in fewer lines run cold.
-            item = pending[0]
-            rows = len(item.states) - item.taken
-            self._last_short = False
-            self._calls_since_short += 1
-            self._pending_cost -= rows * item.unit
-            self._pending_rows -= rows
-            item.taken += rows
-            return [(item, item.taken - rows, item.taken)]
         steps = pending[0].num_steps  # the oldest request picks, so no num_steps group waits forever
         if len(pending) == 1:
             group = [pending[0]]
