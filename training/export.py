@@ -126,7 +126,7 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
         except Exception as exc:  # torch.export / onnxscript raise their own error types
             raise ValueError(f"{stem}: ONNX export failed: {type(exc).__name__}: {exc}") from exc
         max_diff = verify_onnx(tmp, acting)
-        quantized = _quantize(tmp, acting) if int8 else None
+        quantized = _quantize(tmp, acting, inputs) if int8 else None
         opset = _model_opset(tmp)  # the exporter may raise a requested opset; record what the file has
         tmp.replace(out)
     finally:
@@ -175,10 +175,10 @@ def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...]
     return worst
 
 
-def _quantize(path: Path, acting: ActingPolicy, rows: int = 2048) -> dict[str, Any]:
-    """Quantize the file's hidden layers in place; their names and the agreement with the float32 graph on random states."""
+def _quantize(path: Path, acting: ActingPolicy, inputs: list[str], rows: int = 2048) -> dict[str, Any]:
+    """Quantize the file's hidden layers in place; their names and the agreement with the float32 graph on random states
+    (`inputs`: the graph's input names)."""
     example = _example_inputs(acting, batch=rows, seed=2000)
-    inputs = graph_inputs(acting)
     feeds = {name: t.numpy() for name, t in zip(inputs, example)}
     reference = onnx_session(path).run(["actions"], feeds)[0]
     layers = quantize_hidden(path)

@@ -13,6 +13,7 @@ and leave the first, which sees pixels beside sines, in float32. Float rounding 
 
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
@@ -53,9 +54,9 @@ class LeanScoredChoice(nn.Module):
             linear = _feature_map(flow)  # features [20] = z [10] @ linear[:10] + linear[10]
             gen = [m for m in head.net if isinstance(m, nn.Linear)]
             sco = [m for m in head.scorer if isinstance(m, nn.Linear)]
-            self.gen = nn.ModuleList([_fold_first(gen[0], linear), *(_copy(m) for m in gen[1:-1]), _fold_actions(gen[-1], flow, head)])
+            self.gen = nn.ModuleList([_fold_first(gen[0], linear), *(copy.deepcopy(m) for m in gen[1:-1]), _fold_actions(gen[-1], flow, head)])
             first, self.frame = _fold_scorer_first(sco[0], linear)
-            self.sco = nn.ModuleList([first, *(_copy(m) for m in sco[1:-1]), _fold_changes(sco[-1], head.candidates)])
+            self.sco = nn.ModuleList([first, *(copy.deepcopy(m) for m in sco[1:-1]), _fold_changes(sco[-1], head.candidates)])
             self.register_buffer("corners", _corner_map())  # [5, 12]: [d_x, d_y, cos, sin, 1] -> corner differences
             self.register_buffer("goal", torch.tensor(GOAL_POSE[:2], dtype=torch.float32))
 
@@ -102,12 +103,6 @@ def _feature_map(flow: nn.Module) -> torch.Tensor:
     m[6, 18], m[9, 18] = 1 / _FRAME_SCALE, 1 / _FRAME_SCALE
     m[8, 19], m[7, 19] = -1 / _FRAME_SCALE, 1 / _FRAME_SCALE
     return m
-
-
-def _copy(layer: nn.Linear) -> nn.Linear:
-    out = nn.Linear(layer.in_features, layer.out_features)
-    out.load_state_dict(layer.state_dict())
-    return out
 
 
 def _linear(weight: torch.Tensor, bias: torch.Tensor) -> nn.Linear:
