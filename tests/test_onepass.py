@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -192,3 +193,10 @@ def test_a_second_pass_run_scores_a_multichoice_students_hypotheses_in_two_evalu
         pick = student.onepass.scores(student, state_n, chunks_n).argmin(dim=1)
         want = student.normalizer.actions(torch.from_numpy(STATES), chunks_n[torch.arange(len(STATES)), pick]).clamp(0, 512).numpy()
     np.testing.assert_allclose(policy.act(STATES, np.zeros((6, 12, 2), np.float32)), want, atol=1e-3)  # ONNX plays the best-scored
+    # --init with a second pass of the same widths goes on training it (a tiny rate leaves it where it was); other widths: refused
+    more = distill(dataclasses.replace(cfg, name="s2", init=str(run / "last"), scorer_lr=1e-12, scorer_rounds=0, states_from="")).dir
+    trained, again = student.onepass.scorer.state_dict(), load_checkpoint(more / "last")[0].onepass.scorer.state_dict()
+    for name, tensor in trained.items():
+        torch.testing.assert_close(again[name], tensor)
+    with pytest.raises(ValueError, match="is not a student of"):
+        distill(dataclasses.replace(cfg, name="s3", init=str(run / "last"), scorer_dims="8"))

@@ -157,10 +157,10 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
     if cfg.init:
         start, start_card = load_checkpoint(cfg.init)
         ours = {k: v for k, v in student.architecture.items() if k != "onepass_scorer_dims" or not cfg.scorer_dims}  # a fresh second pass
-        if start_card.get("teacher") != cfg.teacher or start.architecture != ours:
+        if start_card.get("teacher") != cfg.teacher or start.architecture not in (ours, student.architecture):
             raise ValueError(f"--init {cfg.init} is not a student of {cfg.teacher} with this run's architecture "
                              f"(its teacher: {start_card.get('teacher')})")
-        if cfg.scorer_dims:  # its weights, and a fresh second pass
+        if cfg.scorer_dims:  # its weights, and a fresh second pass unless it has one of these widths to go on training
             student.load_state_dict({**student.state_dict(), **start.state_dict()})
         else:
             student = start
