@@ -6,7 +6,7 @@ pixels in the block's frame) and its hidden layers. Float32: the parts of both f
 ten numbers (pixel coordinates beside sines: one scale per row would crush the sines), and the scoring
 pass's last, whose few outputs decide which hypothesis plays and cost nothing to keep.
 
-Weights are int8 with one scale per output unit. Activations (SiLU outputs, lifted by its floor so none is
+Weights are int8 (7 bits of it: `WEIGHT_STEPS`) with one scale per output unit. Activations (SiLU outputs, lifted by its floor so none is
 negative) get one uint8 scale per row, computed in the graph: ONNX Runtime's dynamic quantization scales a
 whole call's tensor at once, so a row's actions would depend on the other rows of its batch, which the
 service's contract forbids (an answer never depends on what else was in the batch).
@@ -19,10 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FRAME_WEIGHT", "LAYER_WEIGHT", "SILU_FLOOR", "agreement", "quantize_hidden"]
+__all__ = ["FRAME_WEIGHT", "LAYER_WEIGHT", "SILU_FLOOR", "WEIGHT_STEPS", "agreement", "quantize_hidden"]
 
 SILU_FLOOR = 0.2785
 """just above -min SiLU (0.27846 at -1.278): every quantized layer's input plus this is positive"""
+
+WEIGHT_STEPS = 63
+"""int8 weights use -63..63: CPUs without VNNI (AVX2) multiply uint8 by int8 in pairs summed in int16 (vpmaddubsw), which
+saturates beyond 32767; 2 x 255 x 63 fits, so every CPU computes the same exact products (127 gave other actions there)"""
 
 LAYER_WEIGHT = re.compile(r"(^|\.)(gen|sco)\.([0-9]+)\.weight$")
 """the weights of `training.onepass_graph.LeanScoredChoice`'s layers: its generator's (gen.i) and scoring pass's (sco.i)"""
@@ -110,8 +114,8 @@ def _row_quantized_linear(node, weights: dict, signed: bool = False) -> tuple[li
 
     p, x, y = node.name or node.input[1], node.input[0], node.output[0]
     w = numpy_helper.to_array(weights[node.input[1]]).astype(np.float64)  # [out, in]
-    w_scale = np.maximum(np.abs(w).max(axis=1), 1e-12) / 127.0
-    w_q = np.clip(np.round(w / w_scale[:, None]), -127, 127)
+    w_scale = np.maximum(np.abs(w).max(axis=1), 1e-12) / WEIGHT_STEPS
+    w_q = np.clip(np.round(w / w_scale[:, None]), -WEIGHT_STEPS, WEIGHT_STEPS)
     has_bias = len(node.input) > 2 and node.input[2] != ""  # the exporter drops an all-zero bias
     b = numpy_helper.to_array(weights[node.input[2]]).astype(np.float64) if has_bias else np.zeros(len(w))
     lift = 0.0 if signed else SILU_FLOOR
