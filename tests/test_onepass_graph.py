@@ -81,6 +81,9 @@ def test_int8_quantizes_the_hidden_layers_and_records_their_agreement(tmp_path: 
     # Activations are scaled row by row: a row's actions do not depend on the rest of its call.
     alone = np.concatenate([policy.act(state[i : i + 1], noise[i : i + 1]) for i in range(0, 256, 17)])
     np.testing.assert_array_equal(alone, quantized[::17])
+    # Exported again without the flag (as `training.export` re-exports models/), the card's int8 graph comes back.
+    assert main(["--checkpoint", str(stem)]) == 0
+    np.testing.assert_array_equal(load_policy(stem.with_suffix(".onnx")).act(state, noise), quantized)
 
 
 def test_int8_is_refused_for_a_checkpoint_without_a_scoring_pass(tmp_path: Path) -> None:

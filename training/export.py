@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num-steps", type=int, default=None, help=f"flow: Euler steps unrolled into the graph (default: a distilled flow's own count, else {DEFAULT_NUM_STEPS})")
     parser.add_argument("--triton-repo", default=None, help="write each export as a Triton model repository entry DIR/NAME/1/model.onnx with its config.pbtxt instead")
     parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
-    parser.add_argument("--int8", action="store_true", help="a scoring student: its hidden layers' matrix products in int8 (training.quantize), checked against the float32 graph")
+    parser.add_argument("--int8", action="store_true", help="a scoring student: its hidden layers' matrix products in int8 (training.quantize), checked against the float32 graph; a card whose graph is int8 gets it again without this")
     args = parser.parse_args(argv)
 
     if args.checkpoint is not None:
@@ -68,7 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     status = 0
     for stem, out in jobs:
         try:
-            info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset, int8=args.int8)
+            # a card whose graph was quantized gets its int8 graph again: a float32 one would play other actions
+            int8 = args.int8 or bool((read_card(stem).data.get("onnx") or {}).get("int8"))
+            info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset, int8=int8)
             if args.triton_repo is not None:
                 from training.triton_repo import write_config
 
