@@ -5,8 +5,8 @@
     .venv/bin/python scripts/multichoice_top.py train --labels runs/mc/topm4-64k.safetensors --k 16 \
         --init runs/mc/k8-rand.safetensors --save runs/mc/k16-topm.safetensors
 
-`pick --card STEM`: a multichoice card's hypotheses chosen by the teacher's outcome model (a diagnostic,
-K more evaluations). `label`: each of `--count` random saved states, one fresh start noise each, gets the chooser's `--top` best
+`pick --card STEM [--stretches 1,1.3,1.6]`: a multichoice card's hypotheses (each also at those stretches) chosen by the
+teacher's outcome model (a diagnostic, K x S more evaluations). `label`: each of `--count` random saved states, one fresh start noise each, gets the chooser's `--top` best
 (candidate, stretch) chunks by its outcome model (as `training.distill --top`). `train`: K hypotheses
 (`--init`'s first ones copied to fill K) learn them winner-takes-all, each label pulling its nearest
 hypothesis, half of each batch from `--extra` single-chunk fresh-noise labels; then the teacher's outcome
@@ -63,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     pick.add_argument("--card", required=True, help="a multichoice student's checkpoint stem")
     pick.add_argument("--episodes", type=int, default=1000, help="episodes")
     pick.add_argument("--seed", type=int, default=400_000, help="first episode seed (never a held-out one)")
+    pick.add_argument("--stretches", default="1", help="comma-separated stretches each hypothesis is also offered at (training.outcome.stretch)")
     args = parser.parse_args(argv)
     torch.manual_seed(0)
     teacher, _ = load_checkpoint(TEACHER)
@@ -80,10 +81,12 @@ def main(argv: list[str] | None = None) -> int:
 def outcome_pick(teacher, args: argparse.Namespace) -> int:
     """Play the card's hypotheses as the teacher's outcome model picks them; print the scores (one JSON line)."""
     from pusht.spec import ACTION_HIGH, ACTION_LOW
-    from training.distill_scorer import hypothesis_changes
+    from training.architecture import check_stretches
+    from training.outcome import goal_corner_distance, stretch
 
     student, _ = load_checkpoint(args.card)
     student.eval()
+    factors = check_stretches([float(s) for s in args.stretches.split(",")])
 
     class Pick(torch.nn.Module):
         def __init__(self) -> None:
@@ -93,12 +96,15 @@ def outcome_pick(teacher, args: argparse.Namespace) -> int:
         @torch.no_grad()
         def forward(self, state, noise=None, num_steps=None, prev_state=None):
             state_n = student.policy_state(state)
-            chunks_n, _ = student.onepass(student, state_n)
-            best = student.onepass.goal_distances(student, state_n, hypothesis_changes(student, teacher, state_n)).argmin(dim=1)
-            return torch.clamp(student.normalizer.actions(state, chunks_n[torch.arange(len(state)), best]), ACTION_LOW, ACTION_HIGH)
+            rows, actions = student.onepass.hypothesis_actions(student, state_n, student.onepass(student, state_n)[0])  # [B * K, ...]
+            options = torch.stack([torch.clamp(stretch(rows, actions, f), ACTION_LOW, ACTION_HIGH) for f in factors], dim=1)
+            options = options.reshape(len(state), -1, *actions.shape[1:])  # [B, K * S, H, A]: each hypothesis at each stretch
+            pose = teacher.outcome.model(rows.repeat_interleave(len(factors), dim=0), options.reshape(-1, *actions.shape[1:]))
+            best = goal_corner_distance(pose).reshape(len(state), -1).argmin(dim=1)
+            return options[torch.arange(len(state)), best]
 
     scores = evaluate_policy(Pick(), episodes=args.episodes, seed=args.seed).scores()
-    print(json.dumps({"card": args.card, "play": "outcome", **{k: scores[k] for k in ("success_rate", "success_rate_ci95", "mean_max_reward", "mean_length")}}))
+    print(json.dumps({"card": args.card, "play": "outcome", "stretches": factors, **{k: scores[k] for k in ("success_rate", "success_rate_ci95", "mean_max_reward", "mean_length")}}))
     return 0
 
 

@@ -193,10 +193,44 @@ def test_a_second_pass_run_scores_a_multichoice_students_hypotheses_in_two_evalu
         pick = student.onepass.scores(student, state_n, chunks_n).argmin(dim=1)
         want = student.normalizer.actions(torch.from_numpy(STATES), chunks_n[torch.arange(len(STATES)), pick]).clamp(0, 512).numpy()
     np.testing.assert_allclose(policy.act(STATES, np.zeros((6, 12, 2), np.float32)), want, atol=1e-3)  # ONNX plays the best-scored
-    # --init with a second pass of the same widths goes on training it (a tiny rate leaves it where it was); other widths: refused
+    # --init with a second pass of the same widths goes on training it (a tiny rate leaves it where it was); of other widths,
+    # its hypotheses get a fresh one
     more = distill(dataclasses.replace(cfg, name="s2", init=str(run / "last"), scorer_lr=1e-12, scorer_rounds=0, states_from="")).dir
     trained, again = student.onepass.scorer.state_dict(), load_checkpoint(more / "last")[0].onepass.scorer.state_dict()
     for name, tensor in trained.items():
         torch.testing.assert_close(again[name], tensor)
-    with pytest.raises(ValueError, match="is not a student of"):
-        distill(dataclasses.replace(cfg, name="s3", init=str(run / "last"), scorer_dims="8"))
+    other, other_card = load_checkpoint(distill(dataclasses.replace(cfg, name="s3", init=str(run / "last"), scorer_dims="8",
+                                                                    scorer_rounds=0, states_from="")).dir / "last")
+    assert other_card["architecture"]["onepass_scorer_dims"] == [8]
+    for name, tensor in generator.state_dict().items():
+        torch.testing.assert_close(other.state_dict()[name], tensor)
+
+
+def test_a_shared_second_pass_treats_every_hypothesis_alike_and_exports(tmp_path: Path) -> None:
+    from training.checkpoint import save_checkpoint
+    from training.distill import student_of
+    from training.onepass_graph import lean_graph
+    from training.policies import build_policy
+
+    torch.manual_seed(0)
+    teacher, card = load_checkpoint(TEACHER)
+    student = student_of(teacher, 0.0, onepass_dims="32,32", hypotheses=4, scorer_dims="16,16", scorer_shared=True).eval()
+    assert student.architecture["onepass_scorer_shared"] and lean_graph(student) is None  # exported as the module is
+    with pytest.raises(ValueError, match="it needs onepass_scorer_dims"):
+        build_policy("flow", **{**student.architecture, "onepass_scorer_dims": None})
+    with pytest.raises(ValueError, match="give --scorer-dims too"):
+        DistillConfig(student="multichoice", scorer_shared=True)
+    state_n = student.policy_state(torch.from_numpy(STATES))
+    with torch.no_grad():
+        chunks_n = student.onepass(student, state_n)[0]
+        changes = student.onepass.changes(student, state_n, chunks_n)
+        order = torch.tensor([2, 0, 3, 1])
+        # one set network: the hypotheses in another order get the same changes in that order
+        torch.testing.assert_close(student.onepass.changes(student, state_n, chunks_n[:, order]), changes[:, order])
+    save_checkpoint(tmp_path / "flow", student, card["normalization"], steps=0, git_commit="test", evaluation=None)
+    export_onnx(tmp_path / "flow")
+    policy = load_policy(tmp_path / "flow.onnx")
+    assert policy.network_evaluations() == 2
+    torch_policy = load_policy(tmp_path / "flow")  # the torch backend: the module itself
+    want = torch_policy.act(STATES, np.zeros((6, 12, 2), np.float32))
+    np.testing.assert_allclose(policy.act(STATES, np.zeros((6, 12, 2), np.float32)), want, atol=1e-3)

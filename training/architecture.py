@@ -22,12 +22,13 @@ DEFAULT_TIME_EMBEDDING_DIM = 32
 _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
 MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame", "prev_state", "pace_input", "acting_pace")
 FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale", "steering_dims", "selector_dims", "selector_candidates",
-                                  "outcome_dims", "outcome_candidates", "outcome_stretches", "onepass_dims", "onepass_scorer_dims")
+                                  "outcome_dims", "outcome_candidates", "outcome_stretches", "onepass_dims", "onepass_scorer_dims",
+                                  "onepass_scorer_shared")
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 _VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar",
                      "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0, "steering_dims": None,
                      "selector_dims": None, "selector_candidates": 16, "outcome_dims": None, "outcome_candidates": 16, "outcome_stretches": [1.0], "onepass_dims": None,
-                     "onepass_scorer_dims": None, "prev_state": False, "pace_input": False, "acting_pace": None}
+                     "onepass_scorer_dims": None, "onepass_scorer_shared": False, "prev_state": False, "pace_input": False, "acting_pace": None}
 
 
 def architecture_dict(arch: dict[str, Any]) -> dict[str, Any]:
@@ -82,11 +83,13 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         raise ValueError(f"a flow takes one of steering_dims, selector_dims, outcome_dims and onepass_dims, got {' and '.join(chosen)}")
     if variants.get("onepass_scorer_dims") is not None and variants.get("onepass_dims") is None:
         raise ValueError("onepass_scorer_dims scores a one-pass head's candidates: it needs onepass_dims")
+    if variants.get("onepass_scorer_shared") and variants.get("onepass_scorer_dims") is None:
+        raise ValueError("onepass_scorer_shared shapes a second pass: it needs onepass_scorer_dims")
     if "action_frame" in variants and variants["action_frame"] not in ACTION_FRAMES:
         raise ValueError(f"action_frame must be one of {ACTION_FRAMES}, got {variants['action_frame']!r}")
     if "angle_encoding" in variants and variants["angle_encoding"] not in ANGLE_ENCODINGS:
         raise ValueError(f"angle_encoding must be one of {ANGLE_ENCODINGS}, got {variants['angle_encoding']!r}")
-    for key in ("state_skip", "prev_state", "pace_input"):
+    for key in ("state_skip", "prev_state", "pace_input", "onepass_scorer_shared"):
         if key in variants and not isinstance(variants[key], bool):
             raise ValueError(f"{key} must be true or false, got {variants[key]!r}")
     if variants.get("acting_pace") is not None:

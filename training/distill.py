@@ -151,17 +151,20 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
         student = student_of(teacher, noise_scale, onepass_dims=cfg.student_hidden_dims or DEFAULT_ONEPASS_DIMS)
     elif cfg.student == "multichoice":  # deterministic whatever the labels' noise: it never reads its start noise
         student = student_of(teacher, 0.0, onepass_dims=cfg.student_hidden_dims or DEFAULT_MULTICHOICE_DIMS, hypotheses=cfg.hypotheses,
-                             scorer_dims=cfg.scorer_dims)
+                             scorer_dims=cfg.scorer_dims, scorer_shared=cfg.scorer_shared)
     else:
         student = student_of(teacher, noise_scale, hidden_dims=cfg.student_hidden_dims)
     if cfg.init:
         start, start_card = load_checkpoint(cfg.init)
-        ours = {k: v for k, v in student.architecture.items() if k != "onepass_scorer_dims" or not cfg.scorer_dims}  # a fresh second pass
-        if start_card.get("teacher") != cfg.teacher or start.architecture not in (ours, student.architecture):
+        # with --scorer-dims the hypotheses come from --init and the second pass is trained: its own if it has this one
+        second = ("onepass_scorer_dims", "onepass_scorer_shared") if cfg.scorer_dims else ()
+        if start_card.get("teacher") != cfg.teacher or _without(start.architecture, second) != _without(student.architecture, second):
             raise ValueError(f"--init {cfg.init} is not a student of {cfg.teacher} with this run's architecture "
                              f"(its teacher: {start_card.get('teacher')})")
-        if cfg.scorer_dims:  # its weights, and a fresh second pass unless it has one of these widths to go on training
-            student.load_state_dict({**student.state_dict(), **start.state_dict()})
+        if cfg.scorer_dims:
+            same = start.architecture == student.architecture
+            kept = {k: v for k, v in start.state_dict().items() if same or not k.startswith("onepass.scorer.")}
+            student.load_state_dict({**student.state_dict(), **kept})
         else:
             student = start
     return teacher, student
@@ -188,7 +191,7 @@ def outcome_term(student, teacher, state_n: torch.Tensor, chunk_n: torch.Tensor,
 
 
 def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "", onepass_dims: str = "",
-               hypotheses: int | None = None, scorer_dims: str = "") -> torch.nn.Module:
+               hypotheses: int | None = None, scorer_dims: str = "", scorer_shared: bool = False) -> torch.nn.Module:
     """A plain flow of the teacher's architecture and normalization (and `noise_scale` if given) with its flow's weights,
     or with comma-separated `hidden_dims` a fresh network of those widths; an outcome chooser's own parts stay behind.
     With comma-separated `onepass_dims`: the teacher's flow with a fresh one-pass chooser of those widths over its
@@ -208,6 +211,8 @@ def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidde
         arch.update(outcome_candidates=hypotheses, outcome_stretches=[1.0])
     if scorer_dims:
         arch["onepass_scorer_dims"] = _widths(scorer_dims)
+        if scorer_shared:
+            arch["onepass_scorer_shared"] = True
     student = build_policy("flow", **arch)
     if not hidden_dims:
         weights = {k: v for k, v in teacher.state_dict().items() if not k.startswith("outcome.")}
@@ -215,6 +220,10 @@ def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidde
         student.load_state_dict(weights)
     student.normalizer.set(teacher.normalizer)
     return student
+
+
+def _without(architecture: dict, keys: tuple[str, ...]) -> dict:
+    return {k: v for k, v in architecture.items() if k not in keys}
 
 
 def _widths(text: str) -> list[int]:

@@ -30,6 +30,8 @@ class DistillConfig:
                          "each pulling its nearest hypothesis")
     scorer_dims: str = option("", "comma-separated hidden widths of a multichoice student's second pass, which learns the "
                                   "teacher's outcome model's goal distance of each hypothesis and chooses (2 network evaluations)")
+    scorer_shared: bool = option(False, "the second pass's layers are shared by the hypotheses (a set network: each layer maps "
+                                        "every hypothesis alike plus their mean) instead of one MLP over all of them side by side")
     scorer_steps: int = option(12_000, "optimizer steps of the second pass (half as many after each of its rounds)")
     scorer_rounds: int = option(2, "rounds of the second pass: the student plays --round-episodes, the outcome model labels its hypotheses there")
     scorer_lr: float = option(1e-3, "AdamW peak learning rate of the second pass (a third of it in its rounds)")
@@ -93,6 +95,8 @@ class DistillConfig:
         if self.student == "one-pass" and (self.fixed_noise < 0 or self.outcome_weight):
             raise ValueError("a one-pass student learns a chooser from one fixed start noise: give --fixed-noise SEED "
                              "(and no --outcome-weight: it learns the chooser's own scores)")
+        if self.scorer_shared and not self.scorer_dims:
+            raise ValueError("--scorer-shared shapes the second pass: give --scorer-dims too")
         if (self.top > 1 or self.scorer_dims) and self.student != "multichoice":
             raise ValueError("--top and --scorer-dims belong to a multichoice student: give --student multichoice")
         if self.scorer_dims and not all(w.strip().isdigit() and int(w) > 0 for w in self.scorer_dims.split(",")):

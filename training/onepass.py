@@ -48,7 +48,7 @@ class OnePassChooser(nn.Module):
     """MLP(encoded state, tee corners, agent in the block's frame) -> K normalized candidate chunks and K x S scores (lower: predicted closer to the goal)."""
 
     def __init__(self, encoded_dim: int, chunk_shape: tuple[int, int], hidden_dims: Sequence[int], candidates: int,
-                 stretches: Sequence[float], scorer_dims: Sequence[int] | None = None) -> None:
+                 stretches: Sequence[float], scorer_dims: Sequence[int] | None = None, scorer_shared: bool = False) -> None:
         super().__init__()
         self.chunk_shape = tuple(chunk_shape)
         self.candidates = int(candidates)
@@ -63,7 +63,9 @@ class OnePassChooser(nn.Module):
         if scorer_dims:
             if self.stretches != (1.0,):
                 raise ValueError(f"a scoring pass scores plain hypotheses, not stretches {list(self.stretches)}")
-            self.scorer = silu_mlp(encoded_dim + EXTRA_FEATURES + self.candidates * self.chunk_dim, scorer_dims, self.candidates * 3)
+            features = encoded_dim + EXTRA_FEATURES
+            self.scorer = (SharedScorer(features, self.chunk_dim, scorer_dims) if scorer_shared
+                           else silu_mlp(features + self.candidates * self.chunk_dim, scorer_dims, self.candidates * 3))
 
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def forward(self, flow: nn.Module, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -89,8 +91,10 @@ class OnePassChooser(nn.Module):
         units (`features`: `head_features` of `state_n`, if at hand)."""
         features = head_features(flow, state_n) if features is None else features
         rows, actions = self.hypothesis_actions(flow, state_n, chunks_n)
-        frame = targets_in_block_frame(rows, actions).reshape(-1, self.candidates * self.chunk_dim)
-        return self.scorer(torch.cat([features, frame], dim=1)).reshape(-1, self.candidates, 3)
+        frame = targets_in_block_frame(rows, actions)
+        if isinstance(self.scorer, SharedScorer):
+            return self.scorer(features, frame.reshape(-1, self.candidates, self.chunk_dim))
+        return self.scorer(torch.cat([features, frame.reshape(-1, self.candidates * self.chunk_dim)], dim=1)).reshape(-1, self.candidates, 3)
 
     def hypothesis_actions(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Each hypothesis [B, K, H, A] (normalized) as env-unit rows: its state [B * K, S] and clipped actions [B * K, H, A]."""
@@ -149,6 +153,26 @@ class OnePassChooser(nn.Module):
         factor = torch.tensor(self.stretches, dtype=state_n.dtype, device=state_n.device)[torch.div(best, self.candidates, rounding_mode="floor")]
         state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
         return flow.normalizer.chunk(state, stretch(state, flow.normalizer.actions(state, chunk_n), factor.reshape(-1, 1, 1)))
+
+
+class SharedScorer(nn.Module):
+    """A second pass whose layers the K hypotheses share (a set network, one pass over all K): each layer maps every
+    hypothesis alike and adds a map of their mean, so each learns from all K slots; the state's features enter once."""
+
+    def __init__(self, feature_dim: int, chunk_dim: int, dims: Sequence[int]) -> None:
+        super().__init__()
+        self.state = nn.Linear(feature_dim, dims[0])
+        self.chunk = nn.Linear(chunk_dim, dims[0], bias=False)
+        self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
+        self.context = nn.ModuleList(nn.Linear(a, b, bias=False) for a, b in zip(dims[:-1], dims[1:]))
+        self.out = nn.Linear(dims[-1], 3)
+
+    def forward(self, features: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
+        """[B, K, 3] from the state's features [B, F] and the K hypotheses' targets in the block's frame [B, K, H * A]."""
+        h = F.silu(self.chunk(chunks) + self.state(features)[:, None])
+        for layer, context in zip(self.hidden, self.context):
+            h = F.silu(layer(h) + context(h.mean(dim=1, keepdim=True)))
+        return self.out(h)
 
 
 def head_features(flow: nn.Module, state_n: torch.Tensor) -> torch.Tensor:

@@ -36,7 +36,7 @@ def _fits(flow: nn.Module) -> bool:
     """Whether the folding below holds: a scoring head, a 5-d state seen as z-scores and the angle's sine and cosine (no
     history or pace input), 2-d actions relative to the agent."""
     head = getattr(flow, "onepass", None)
-    return (head is not None and head.scorer is not None and head.stretches == (1.0,) and flow.state_dim == 5
+    return (head is not None and isinstance(head.scorer, nn.Sequential) and head.stretches == (1.0,) and flow.state_dim == 5
             and head.chunk_shape[1] == 2 and flow.angle_encoding == "sincos" and not flow.prev_state and not flow.pace_input
             and flow.normalizer.action_frame == "agent")
 
