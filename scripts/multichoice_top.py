@@ -6,10 +6,10 @@
         --init runs/mc/k8-rand.safetensors --save runs/mc/k16-topm.safetensors
 
 `pick --card STEM [--stretches 1,1.3,1.6]`: a multichoice card's hypotheses (each also at those stretches) chosen by the
-teacher's outcome model (a diagnostic, K x S more evaluations). `label`: each of `--count` random saved states, one fresh start noise each, gets the chooser's `--top` best
-(candidate, stretch) chunks by its outcome model (as `training.distill --top`). `train`: K hypotheses
-(`--init`'s first ones copied to fill K) learn them winner-takes-all, each label pulling its nearest
-hypothesis, half of each batch from `--extra` single-chunk fresh-noise labels; then the teacher's outcome
+teacher's outcome model (a diagnostic, K x S more evaluations). `label`: each of `--count` random saved states, one
+fresh start noise each, gets the chooser's `--top` best (candidate, stretch) chunks by its outcome model (as
+`training.distill --top`). `train`: K hypotheses (`--init`'s first ones copied to fill K) learn them winner-takes-all,
+each label pulling its nearest hypothesis, half of each batch from `--extra` single-chunk fresh-noise labels; then the teacher's outcome
 model choosing among the K (a diagnostic) and the argmax logit play 1,000 episodes. `training.distill
 --student multichoice --top M` is the product path (from scratch: no --init, no --extra).
 """

@@ -51,8 +51,8 @@ class DistillConfig:
     round_episodes: int = option(1000, "episodes the student plays in each round")
     round_seed: int = option(23_000_000, "first episode seed of the teacher's and the rounds' episodes (training seeds)")
     init: str = option("", "start the student from this checkpoint stem (a student of the same teacher, e.g. a run's last, "
-                           "to go on with more rounds; with --scorer-dims, one with a second pass of those widths goes on "
-                           "training it) instead of the teacher's flow")
+                           "to go on with more rounds; with --scorer-dims its hypotheses get a second pass: its own if of those "
+                           "widths, which goes on training, else a fresh one) instead of the teacher's flow")
     student_hidden_dims: str = option("", "comma-separated hidden widths of a fresh student network (default: the teacher's "
                                          f"flow, weights included; a one-pass student's: {DEFAULT_ONEPASS_DIMS}; "
                                          f"a multichoice student's: {DEFAULT_MULTICHOICE_DIMS})")

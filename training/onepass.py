@@ -56,7 +56,8 @@ class OnePassChooser(nn.Module):
         self.choices = self.candidates * len(self.stretches)
         self.chunk_dim = self.chunk_shape[0] * self.chunk_shape[1]
         self.net = silu_mlp(encoded_dim + EXTRA_FEATURES, hidden_dims, self.candidates * self.chunk_dim + self.choices)
-        # One plain MLP over the K hypotheses side by side (no weights shared across them): one network pass.
+        # One network pass over the K hypotheses: a plain MLP over them side by side, or with `scorer_shared` a set network
+        # whose layers they share (`SharedScorer`).
         # It predicts where each hypothesis leaves the block (as the outcome model's network: a move and a turn); the
         # goal distances, where the choice's jumps lie, then follow exactly. Plain hypotheses only: no stretch.
         self.scorer = None
