@@ -82,7 +82,7 @@ def outcome_pick(teacher, args: argparse.Namespace) -> int:
     """Play the card's hypotheses as the teacher's outcome model picks them; print the scores (one JSON line)."""
     from pusht.spec import ACTION_HIGH, ACTION_LOW
     from training.architecture import check_stretches
-    from training.outcome import goal_corner_distance, stretch
+    from training.outcome import stretch
 
     student, _ = load_checkpoint(args.card)
     student.eval()
@@ -99,8 +99,8 @@ def outcome_pick(teacher, args: argparse.Namespace) -> int:
             rows, actions = student.onepass.hypothesis_actions(student, state_n, student.onepass(student, state_n)[0])  # [B * K, ...]
             options = torch.stack([torch.clamp(stretch(rows, actions, f), ACTION_LOW, ACTION_HIGH) for f in factors], dim=1)
             options = options.reshape(len(state), -1, *actions.shape[1:])  # [B, K * S, H, A]: each hypothesis at each stretch
-            pose = teacher.outcome.model(rows.repeat_interleave(len(factors), dim=0), options.reshape(-1, *actions.shape[1:]))
-            best = goal_corner_distance(pose).reshape(len(state), -1).argmin(dim=1)
+            distance = teacher.outcome.goal_distance(rows.repeat_interleave(len(factors), dim=0), options.reshape(-1, *actions.shape[1:]))
+            best = distance.reshape(len(state), -1).argmin(dim=1)
             return options[torch.arange(len(state)), best]
 
     scores = evaluate_policy(Pick(), episodes=args.episodes, seed=args.seed).scores()

@@ -36,7 +36,8 @@ from pydantic import ValidationError
 from pusht.spec import STATE_DIM
 from service.batching import Batcher, Overloaded
 from service.guard import refuse_headers
-from service.request_input import WANTED_HEADERS, ServiceError, cap_errors, check_key, read_body, request_headers
+from service.request_input import (WANTED_HEADERS, Receive, Scope, ServiceError, cap_errors, check_key, read_body,
+                                   request_headers)
 from service.schemas import MAX_SEED, act_request_model
 from service.settings import MAX_NUM_STEPS, STATE_LIMIT, Settings
 from service.state import ServiceState
@@ -45,8 +46,6 @@ __all__ = ["ActFastPath", "ActHandler", "ClientGone", "await_actions", "single_s
 
 log = logging.getLogger("uvicorn.error")
 
-Scope = dict[str, Any]
-Receive = Callable[[], Awaitable[dict[str, Any]]]
 Send = Callable[[dict[str, Any]], Awaitable[None]]
 
 

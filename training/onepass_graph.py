@@ -8,7 +8,8 @@ agent's offset from the block times them), the action statistics go into the gen
 block frame's scale into the scorer's first, the outcome units into its last; the goal distance of the tee's
 corners after each hypothesis is one small product with a constant matrix. The scorer's first layer is kept as
 two (on z, and on the hypotheses' targets: `frame`) so that `training.quantize` can take the second to int8
-and leave the first, which sees pixels beside sines, in float32. Float rounding differs from the module's, so a choice between two hypotheses tied to about 1e-6 may differ; nothing else does.
+and leave the first, which sees pixels beside sines, in float32. Float rounding differs from the module's, so a
+choice between two hypotheses tied to about 1e-6 may differ; nothing else does.
 """
 
 from __future__ import annotations

@@ -6,10 +6,10 @@ pixels in the block's frame) and its hidden layers. Float32: the parts of both f
 ten numbers (pixel coordinates beside sines: one scale per row would crush the sines), and the scoring
 pass's last, whose few outputs decide which hypothesis plays and cost nothing to keep.
 
-Weights are int8 (7 bits of it: `WEIGHT_STEPS`) with one scale per output unit. Activations (SiLU outputs, lifted by its floor so none is
-negative) get one uint8 scale per row, computed in the graph: ONNX Runtime's dynamic quantization scales a
-whole call's tensor at once, so a row's actions would depend on the other rows of its batch, which the
-service's contract forbids (an answer never depends on what else was in the batch).
+Weights are int8 (7 bits of it: `WEIGHT_STEPS`) with one scale per output unit. Activations (SiLU outputs,
+lifted by its floor so none is negative) get one uint8 scale per row, computed in the graph: ONNX Runtime's
+dynamic quantization scales a whole call's tensor at once, so a row's actions would depend on the other rows
+of its batch, which the service's contract forbids (an answer never depends on what else was in the batch).
 """
 
 from __future__ import annotations
