@@ -166,6 +166,49 @@ def test_a_scoring_pass_learns_where_each_hypothesis_leaves_the_block_and_plays_
         OnePassChooser(encoded, (12, 2), [32], 3, [1.0, 1.5], scorer_dims=[64])
 
 
+def test_a_second_pass_with_stretches_learns_the_outcome_of_each_hypothesis_stretched_and_plays_the_nearest() -> None:
+    from training.distill_scorer import hypothesis_changes
+    from training.distill import student_of
+    from training.outcome import stretch
+
+    torch.manual_seed(0)
+    teacher, _ = load_checkpoint(TEACHER)
+    student = student_of(teacher, 0.0, onepass_dims="32", hypotheses=3, scorer_dims="64", scorer_stretches=[1.0, 1.5]).eval()
+    head, state = student.onepass, torch.from_numpy(STATES)
+    state_n = student.policy_state(state)
+    with torch.no_grad():
+        for p in head.net.parameters():  # hypotheses tens of pixels apart
+            p.mul_(3.0)
+        chunks_n = head(student, state_n)[0]
+        _, plain = head.hypothesis_actions(student, state_n, chunks_n)  # [6 * 3, 12, 2]
+        labels = hypothesis_changes(student, teacher, state_n)  # [6, 3 * 2, 3]: the 3 plain, then the 3 stretched
+        stretched = torch.clamp(stretch(state.repeat_interleave(3, dim=0), plain, 1.5), 0, 512)
+        torch.testing.assert_close(labels[:, 3:].reshape(-1, 3), teacher.outcome.model.net(teacher.outcome.model.features(
+            state.repeat_interleave(3, dim=0), stretched)))
+    nearest_ = head.goal_distances(student, state_n, labels).argmin(dim=1)
+    optimizer = torch.optim.Adam(head.scorer.parameters(), lr=1e-2)
+    for _ in range(300):
+        loss = head.scorer_loss(student, state_n, chunks_n, labels)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        np.testing.assert_array_equal(head.scores(student, state_n, chunks_n).argmin(dim=1).numpy(), nearest_.numpy())
+        options = torch.cat([plain.reshape(6, 3, 12, 2), stretched.reshape(6, 3, 12, 2)], dim=1)
+        want = options[torch.arange(6), nearest_]
+        played = student.normalizer.actions(state, head.best_chunk(student, state_n, torch.zeros(6, 12, 2)))
+        torch.testing.assert_close(played, want, atol=1e-3, rtol=0)
+    assert set(nearest_.tolist()) & {3, 4, 5}  # some play stretched
+    with pytest.raises(ValueError, match="scorer_stretches must be"):
+        DistillConfig(student="multichoice", scorer_dims="16", steps=0, init="x", scorer_stretches="1.3,1")
+    with pytest.raises(ValueError, match="give --scorer-dims too"):
+        DistillConfig(student="multichoice", scorer_stretches="1,1.5")
+    from training.policies import build_policy
+
+    with pytest.raises(ValueError, match="onepass_scorer_stretches are what a second pass scores"):
+        build_policy("flow", **{**student.architecture, "onepass_scorer_dims": None})
+
+
 def test_a_second_pass_run_scores_a_multichoice_students_hypotheses_in_two_evaluations(tmp_path: Path) -> None:
     cfg = DistillConfig(teacher=str(TEACHER), name="m", out_dir=str(tmp_path), student="multichoice", hypotheses=4, fixed_noise=-1, top=3,
                         pairs=32, steps=4, batch_size=8, eval_episodes=1, log_every=2, progress=False, student_hidden_dims="32,32")
@@ -204,6 +247,15 @@ def test_a_second_pass_run_scores_a_multichoice_students_hypotheses_in_two_evalu
     assert other_card["architecture"]["onepass_scorer_dims"] == [8]
     for name, tensor in generator.state_dict().items():
         torch.testing.assert_close(other.state_dict()[name], tensor)
+    # of the same widths scoring other stretches: its layers but the last stay
+    stretched, _ = load_checkpoint(distill(dataclasses.replace(cfg, name="s4", init=str(run / "last"), scorer_stretches="1,1.5",
+                                                               scorer_lr=1e-12, scorer_rounds=0, states_from="")).dir / "last")
+    assert stretched.onepass.scored == 8
+    for name, tensor in trained.items():
+        if name.startswith("4."):  # the last layer: 8 x 3 outputs now
+            assert stretched.onepass.scorer.state_dict()[name].shape[0] == 24
+        else:
+            torch.testing.assert_close(stretched.onepass.scorer.state_dict()[name], tensor)
 
 
 def test_a_shared_second_pass_treats_every_hypothesis_alike_and_exports(tmp_path: Path) -> None:

@@ -21,11 +21,12 @@ REPO = Path(__file__).resolve().parent.parent
 TEACHER = REPO / "records" / "flow-outcome16-stretch" / "last"
 
 
-def _scoring_student(tmp_path: Path) -> Path:
-    """A random scoring student (4 hypotheses, 2 x 32 generator and scorer) saved as a checkpoint; returns its stem."""
+def _scoring_student(tmp_path: Path, stretches: tuple[float, ...] = (1.0,)) -> Path:
+    """A random scoring student (4 hypotheses, 2 x 32 generator and scorer, scoring each at `stretches`) saved as a
+    checkpoint; returns its stem."""
     torch.manual_seed(0)
     teacher, _ = load_checkpoint(TEACHER)
-    student = student_of(teacher, 0.0, onepass_dims="32,32", hypotheses=4, scorer_dims="32,32")
+    student = student_of(teacher, 0.0, onepass_dims="32,32", hypotheses=4, scorer_dims="32,32", scorer_stretches=stretches)
     with torch.no_grad():  # outputs of the order of a trained head's, so the hypotheses differ by tens of pixels
         for p in student.onepass.parameters():
             p.mul_(3.0)
@@ -39,8 +40,9 @@ def _states(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return low + (high - low) * torch.rand(n, 5, generator=gen), torch.randn(n, 12, 2, generator=gen)
 
 
-def test_the_lean_graph_plays_the_modules_choice(tmp_path: Path) -> None:
-    acting = load_acting_policy(_scoring_student(tmp_path), num_steps=1).eval()
+@pytest.mark.parametrize("stretches", [(1.0,), (1.0, 1.3, 1.6)])
+def test_the_lean_graph_plays_the_modules_choice(tmp_path: Path, stretches: tuple[float, ...]) -> None:
+    acting = load_acting_policy(_scoring_student(tmp_path, stretches), num_steps=1).eval()
     lean = LeanScoredChoice(acting.policy).eval()
     state, noise = _states(2000, seed=1)
     with torch.no_grad():
@@ -48,6 +50,13 @@ def test_the_lean_graph_plays_the_modules_choice(tmp_path: Path) -> None:
     worst = (want - got).abs().amax(dim=(1, 2))
     assert float((worst > 1e-3).float().mean()) <= 0.005  # float rounding; only a near tie may pick another hypothesis
     assert lean_graph(load_checkpoint(TEACHER)[0]) is None
+    if len(stretches) > 1:  # some chunks play stretched: no hypothesis is them
+        with torch.no_grad():
+            head = acting.policy.onepass
+            state_n = acting.policy.policy_state(state)
+            _, hypotheses = head.hypothesis_actions(acting.policy, state_n, head(acting.policy, state_n)[0])
+        apart = (got[:, None] - hypotheses.reshape(len(state), head.candidates, 12, 2)).abs().amax(dim=(2, 3)).amin(dim=1)
+        assert 0.1 < float((apart > 1e-3).float().mean()) < 0.9
 
 
 def test_the_lean_export_has_a_third_of_the_modules_nodes(tmp_path: Path) -> None:

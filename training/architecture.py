@@ -23,12 +23,12 @@ _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
 MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame", "prev_state", "pace_input", "acting_pace")
 FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale", "steering_dims", "selector_dims", "selector_candidates",
                                   "outcome_dims", "outcome_candidates", "outcome_stretches", "onepass_dims", "onepass_scorer_dims",
-                                  "onepass_scorer_shared")
+                                  "onepass_scorer_shared", "onepass_scorer_stretches")
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 _VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar",
                      "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0, "steering_dims": None,
                      "selector_dims": None, "selector_candidates": 16, "outcome_dims": None, "outcome_candidates": 16, "outcome_stretches": [1.0], "onepass_dims": None,
-                     "onepass_scorer_dims": None, "onepass_scorer_shared": False, "prev_state": False, "pace_input": False, "acting_pace": None}
+                     "onepass_scorer_dims": None, "onepass_scorer_shared": False, "onepass_scorer_stretches": [1.0], "prev_state": False, "pace_input": False, "acting_pace": None}
 
 
 def architecture_dict(arch: dict[str, Any]) -> dict[str, Any]:
@@ -76,8 +76,9 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         k = variants.get(key, 16)
         if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 256:
             raise ValueError(f"{key} must be an int in [1, 256], got {k!r}")
-    if "outcome_stretches" in variants:
-        variants["outcome_stretches"] = check_stretches(variants["outcome_stretches"])
+    for key in ("outcome_stretches", "onepass_scorer_stretches"):
+        if key in variants:
+            variants[key] = check_stretches(variants[key], key)
     chosen = [key for key in ("steering_dims", "selector_dims", "outcome_dims", "onepass_dims") if variants.get(key) is not None]
     if len(chosen) > 1:
         raise ValueError(f"a flow takes one of steering_dims, selector_dims, outcome_dims and onepass_dims, got {' and '.join(chosen)}")
@@ -85,6 +86,8 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         raise ValueError("onepass_scorer_dims scores a one-pass head's candidates: it needs onepass_dims")
     if variants.get("onepass_scorer_shared") and variants.get("onepass_scorer_dims") is None:
         raise ValueError("onepass_scorer_shared shapes a second pass: it needs onepass_scorer_dims")
+    if variants.get("onepass_scorer_stretches", [1.0]) != [1.0] and variants.get("onepass_scorer_dims") is None:
+        raise ValueError("onepass_scorer_stretches are what a second pass scores: it needs onepass_scorer_dims")
     if "action_frame" in variants and variants["action_frame"] not in ACTION_FRAMES:
         raise ValueError(f"action_frame must be one of {ACTION_FRAMES}, got {variants['action_frame']!r}")
     if "angle_encoding" in variants and variants["angle_encoding"] not in ANGLE_ENCODINGS:
@@ -113,10 +116,11 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
     return variants
 
 
-def check_stretches(stretches: Any) -> list[float]:
-    """The outcome chooser's chunk stretches: numbers in (0, 4], the first 1 (the flow's own chunks, what near-ties fall back to)."""
+def check_stretches(stretches: Any, name: str = "outcome_stretches") -> list[float]:
+    """Chunk stretches (an outcome chooser's, or those a second pass scores): numbers in (0, 4], the first 1 (the chunks
+    themselves, what near-ties fall back to); a ValueError names `name`."""
     if isinstance(stretches, (str, bytes)) or not isinstance(stretches, Sequence) or not stretches or any(
         isinstance(s, bool) or not isinstance(s, (int, float)) or not 0 < s <= 4 for s in stretches
     ) or stretches[0] != 1:
-        raise ValueError(f"outcome_stretches must be a list of numbers in (0, 4] starting with 1, got {stretches!r}")
+        raise ValueError(f"{name} must be a list of numbers in (0, 4] starting with 1, got {stretches!r}")
     return [float(s) for s in stretches]

@@ -29,6 +29,7 @@ import sys
 import time
 from functools import partial
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -151,19 +152,20 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
         student = student_of(teacher, noise_scale, onepass_dims=cfg.student_hidden_dims or DEFAULT_ONEPASS_DIMS)
     elif cfg.student == "multichoice":  # deterministic whatever the labels' noise: it never reads its start noise
         student = student_of(teacher, 0.0, onepass_dims=cfg.student_hidden_dims or DEFAULT_MULTICHOICE_DIMS, hypotheses=cfg.hypotheses,
-                             scorer_dims=cfg.scorer_dims, scorer_shared=cfg.scorer_shared)
+                             scorer_dims=cfg.scorer_dims, scorer_shared=cfg.scorer_shared, scorer_stretches=cfg.scored_stretches())
     else:
         student = student_of(teacher, noise_scale, hidden_dims=cfg.student_hidden_dims)
     if cfg.init:
         start, start_card = load_checkpoint(cfg.init)
         # with --scorer-dims the hypotheses come from --init and the second pass is trained: its own if it has this one
-        second = ("onepass_scorer_dims", "onepass_scorer_shared") if cfg.scorer_dims else ()
+        second = ("onepass_scorer_dims", "onepass_scorer_shared", "onepass_scorer_stretches") if cfg.scorer_dims else ()
         if start_card.get("teacher") != cfg.teacher or _without(start.architecture, second) != _without(student.architecture, second):
             raise ValueError(f"--init {cfg.init} is not a student of {cfg.teacher} with this run's architecture "
                              f"(its teacher: {start_card.get('teacher')})")
-        if cfg.scorer_dims:
-            same = start.architecture == student.architecture
-            kept = {k: v for k, v in start.state_dict().items() if same or not k.startswith("onepass.scorer.")}
+        if cfg.scorer_dims:  # a second pass of the same widths keeps its layers (but the last, if it scores other stretches)
+            same = all(start.architecture.get(k) == student.architecture.get(k) for k in second[:2])
+            own = student.state_dict()
+            kept = {k: v for k, v in start.state_dict().items() if not k.startswith("onepass.scorer.") or (same and own[k].shape == v.shape)}
             student.load_state_dict({**student.state_dict(), **kept})
         else:
             student = start
@@ -191,12 +193,13 @@ def outcome_term(student, teacher, state_n: torch.Tensor, chunk_n: torch.Tensor,
 
 
 def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "", onepass_dims: str = "",
-               hypotheses: int | None = None, scorer_dims: str = "", scorer_shared: bool = False) -> torch.nn.Module:
+               hypotheses: int | None = None, scorer_dims: str = "", scorer_shared: bool = False,
+               scorer_stretches: Sequence[float] = (1.0,)) -> torch.nn.Module:
     """A plain flow of the teacher's architecture and normalization (and `noise_scale` if given) with its flow's weights,
     or with comma-separated `hidden_dims` a fresh network of those widths; an outcome chooser's own parts stay behind.
     With comma-separated `onepass_dims`: the teacher's flow with a fresh one-pass chooser of those widths over its
     candidates and stretches (`training.onepass`), or with `hypotheses` a multiple-choice head of that many unstretched chunks
-    (and with `scorer_dims` its second pass)."""
+    (and with `scorer_dims` its second pass, scoring each at `scorer_stretches`)."""
     from training.policies import build_policy
 
     dropped = ("outcome_dims",) if onepass_dims else CHOOSER_KEYS
@@ -213,6 +216,8 @@ def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidde
         arch["onepass_scorer_dims"] = _widths(scorer_dims)
         if scorer_shared:
             arch["onepass_scorer_shared"] = True
+        if list(scorer_stretches) != [1.0]:
+            arch["onepass_scorer_stretches"] = [float(s) for s in scorer_stretches]
     student = build_policy("flow", **arch)
     if not hidden_dims:
         weights = {k: v for k, v in teacher.state_dict().items() if not k.startswith("outcome.")}

@@ -32,6 +32,8 @@ class DistillConfig:
                                   "teacher's outcome model's goal distance of each hypothesis and chooses (2 network evaluations)")
     scorer_shared: bool = option(False, "the second pass's layers are shared by the hypotheses (a set network: each layer maps "
                                         "every hypothesis alike plus their mean) instead of one MLP over all of them side by side")
+    scorer_stretches: str = option("1", "comma-separated stretches (the first 1) at which the second pass scores each hypothesis: "
+                                        "the nearest of all plays at its stretch (training.outcome.stretch)")
     scorer_steps: int = option(12_000, "optimizer steps of the second pass (half as many after each of its rounds)")
     scorer_rounds: int = option(2, "rounds of the second pass: the student plays --round-episodes, the outcome model labels its hypotheses there")
     scorer_lr: float = option(1e-3, "AdamW peak learning rate of the second pass (a third of it in its rounds)")
@@ -95,6 +97,8 @@ class DistillConfig:
         if self.student == "one-pass" and (self.fixed_noise < 0 or self.outcome_weight):
             raise ValueError("a one-pass student learns a chooser from one fixed start noise: give --fixed-noise SEED "
                              "(and no --outcome-weight: it learns the chooser's own scores)")
+        if self.scored_stretches() != [1.0] and not self.scorer_dims:
+            raise ValueError("--scorer-stretches are what a second pass scores: give --scorer-dims too")
         if self.scorer_shared and not self.scorer_dims:
             raise ValueError("--scorer-shared shapes the second pass: give --scorer-dims too")
         if (self.top > 1 or self.scorer_dims) and self.student != "multichoice":
@@ -111,6 +115,16 @@ class DistillConfig:
             raise ValueError(f"relax must be in [0, 1), got {self.relax}")
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
+
+    def scored_stretches(self) -> list[float]:
+        """`scorer_stretches` as numbers (ValueError unless in (0, 4] and the first 1)."""
+        from training.architecture import check_stretches
+
+        try:
+            factors = [float(s) for s in self.scorer_stretches.split(",")]
+        except ValueError:
+            raise ValueError(f"scorer_stretches must be comma-separated numbers, got {self.scorer_stretches!r}") from None
+        return check_stretches(factors, "scorer_stretches")
 
     def to_dict(self) -> dict:
         """A JSON-ready dict of every field."""

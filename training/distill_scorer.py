@@ -55,13 +55,13 @@ def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: t
 
 @torch.no_grad()
 def hypothesis_changes(student, teacher, state_n: torch.Tensor) -> torch.Tensor:
-    """[N, K, 3]: where the teacher's outcome model says each of the student's K hypotheses at the inputs `state_n` [N, S']
-    leaves the block (its network's output: a move in the block's frame and a turn, scaled)."""
+    """[N, K * S, 3]: where the teacher's outcome model says each of the student's K hypotheses at the inputs `state_n` [N, S']
+    leaves the block at each stretch the second pass scores (its network's output: a move in the block's frame and a turn, scaled)."""
     head, model, out = student.onepass, teacher.outcome.model, []
-    for i in range(0, len(state_n), LABEL_BATCH):
-        rows_n = state_n[i : i + LABEL_BATCH]
-        state, actions = head.hypothesis_actions(student, rows_n, head(student, rows_n)[0])
-        out.append(model.net(model.features(state, actions)).reshape(len(rows_n), head.candidates, 3))
+    for i in range(0, len(state_n), LABEL_BATCH // len(head.scorer_stretches)):
+        rows_n = state_n[i : i + LABEL_BATCH // len(head.scorer_stretches)]
+        state, actions = head.scored_actions(student, rows_n, head(student, rows_n)[0])
+        out.append(model.net(model.features(state, actions)).reshape(len(rows_n), head.scored, 3))
     return torch.cat(out)
 
 

@@ -15,6 +15,9 @@ learn which hypothesis is nearest (`multichoice_loss`); it plays the best-scored
 only guess which hypothesis the chooser would pick; with `scorer_dims` a second pass (2 network evaluations) sees
 all K hypotheses, their targets in the block's frame as the outcome model sees them, and predicts where each
 leaves the block as the teacher's outcome model would (`scorer_loss`): the one predicted nearest the goal plays.
+With `scorer_stretches` the second pass also predicts each hypothesis stretched (as the chooser stretches its
+candidates) from the same inputs, and the nearest of all K x S plays at its stretch: the hypotheses, chosen
+so by the teacher's outcome model, play 1.6 points better than unstretched (models/README.md).
 """
 
 from __future__ import annotations
@@ -48,25 +51,30 @@ class OnePassChooser(nn.Module):
     """MLP(encoded state, tee corners, agent in the block's frame) -> K normalized candidate chunks and K x S scores (lower: predicted closer to the goal)."""
 
     def __init__(self, encoded_dim: int, chunk_shape: tuple[int, int], hidden_dims: Sequence[int], candidates: int,
-                 stretches: Sequence[float], scorer_dims: Sequence[int] | None = None, scorer_shared: bool = False) -> None:
+                 stretches: Sequence[float], scorer_dims: Sequence[int] | None = None, scorer_shared: bool = False,
+                 scorer_stretches: Sequence[float] = (1.0,)) -> None:
         super().__init__()
         self.chunk_shape = tuple(chunk_shape)
         self.candidates = int(candidates)
         self.stretches = tuple(float(s) for s in stretches)
         self.choices = self.candidates * len(self.stretches)
         self.chunk_dim = self.chunk_shape[0] * self.chunk_shape[1]
+        self.scorer_stretches = tuple(float(s) for s in scorer_stretches)
+        self.scored = self.candidates * len(self.scorer_stretches)
+        """how many (hypothesis, stretch) choices the second pass scores: the K hypotheses at each stretch in turn"""
         self.net = silu_mlp(encoded_dim + EXTRA_FEATURES, hidden_dims, self.candidates * self.chunk_dim + self.choices)
         # One network pass over the K hypotheses: a plain MLP over them side by side, or with `scorer_shared` a set network
         # whose layers they share (`SharedScorer`).
         # It predicts where each hypothesis leaves the block (as the outcome model's network: a move and a turn); the
-        # goal distances, where the choice's jumps lie, then follow exactly. Plain hypotheses only: no stretch.
+        # goal distances, where the choice's jumps lie, then follow exactly. Plain hypotheses only (no first-pass stretch);
+        # the second pass may score each at `scorer_stretches`.
         self.scorer = None
         if scorer_dims:
             if self.stretches != (1.0,):
                 raise ValueError(f"a scoring pass scores plain hypotheses, not stretches {list(self.stretches)}")
             features = encoded_dim + EXTRA_FEATURES
-            self.scorer = (SharedScorer(features, self.chunk_dim, scorer_dims) if scorer_shared
-                           else silu_mlp(features + self.candidates * self.chunk_dim, scorer_dims, self.candidates * 3))
+            self.scorer = (SharedScorer(features, self.chunk_dim, scorer_dims, 3 * len(self.scorer_stretches)) if scorer_shared
+                           else silu_mlp(features + self.candidates * self.chunk_dim, scorer_dims, self.scored * 3))
 
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def forward(self, flow: nn.Module, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -88,33 +96,45 @@ class OnePassChooser(nn.Module):
         return score_target(self._distances(flow, state_n, chunks_n, head_features(flow, state_n)))
 
     def changes(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, features: torch.Tensor | None = None) -> torch.Tensor:
-        """The second pass: [B, K, 3] where each hypothesis [B, K, H, A] (normalized) leaves the block, in the outcome model's
-        units (`features`: `head_features` of `state_n`, if at hand)."""
+        """The second pass: [B, K * S, 3] where each hypothesis [B, K, H, A] (normalized) at each scored stretch leaves the
+        block, in the outcome model's units (`features`: `head_features` of `state_n`, if at hand)."""
         features = head_features(flow, state_n) if features is None else features
         rows, actions = self.hypothesis_actions(flow, state_n, chunks_n)
         frame = targets_in_block_frame(rows, actions)
-        if isinstance(self.scorer, SharedScorer):
-            return self.scorer(features, frame.reshape(-1, self.candidates, self.chunk_dim))
-        return self.scorer(torch.cat([features, frame.reshape(-1, self.candidates * self.chunk_dim)], dim=1)).reshape(-1, self.candidates, 3)
+        if isinstance(self.scorer, SharedScorer):  # [B, K, S * 3] -> the K at each stretch in turn
+            out = self.scorer(features, frame.reshape(-1, self.candidates, self.chunk_dim))
+            return out.reshape(-1, self.candidates, len(self.scorer_stretches), 3).transpose(1, 2).reshape(-1, self.scored, 3)
+        return self.scorer(torch.cat([features, frame.reshape(-1, self.candidates * self.chunk_dim)], dim=1)).reshape(-1, self.scored, 3)
 
     def hypothesis_actions(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Each hypothesis [B, K, H, A] (normalized) as env-unit rows: its state [B * K, S] and clipped actions [B * K, H, A]."""
         rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
         return rows, torch.clamp(flow.normalizer.actions(rows, chunks_n.reshape(-1, *self.chunk_shape)), ACTION_LOW, ACTION_HIGH)
 
+    def scored_actions(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """What the second pass scores, as env-unit rows: each row's state [B * K * S, S'] and the clipped actions
+        [B * K * S, H, A] of each hypothesis [B, K, H, A] (normalized) at each scored stretch (the K at each stretch in turn)."""
+        rows, actions = self.hypothesis_actions(flow, state_n, chunks_n)
+        if self.scorer_stretches == (1.0,):
+            return rows, actions
+        states = rows[:: self.candidates]
+        actions = actions.reshape(-1, self.candidates, *self.chunk_shape)
+        every = torch.stack([_stretched(states, actions, factor) for factor in self.scorer_stretches], dim=1)
+        return states.repeat_interleave(self.scored, dim=0), every.reshape(-1, *self.chunk_shape)
+
     def goal_distances(self, flow: nn.Module, state_n: torch.Tensor, changes: torch.Tensor) -> torch.Tensor:
-        """[B, K]: the goal distances (`goal_corner_distance`) after the K hypotheses move the block by `changes` [B, K, 3]
-        (the outcome model's units) from the flow's inputs `state_n`."""
-        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
-        return goal_corner_distance(pose_after(rows, changes.reshape(-1, 3))).reshape(-1, self.candidates)
+        """[B, K * S]: the goal distances (`goal_corner_distance`) after the K hypotheses at each scored stretch move the block by
+        `changes` [B, K * S, 3] (the outcome model's units) from the flow's inputs `state_n`."""
+        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.scored, dim=0)
+        return goal_corner_distance(pose_after(rows, changes.reshape(-1, 3))).reshape(-1, self.scored)
 
     def _distances(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-        """[B, K]: the goal distances after the hypotheses, by the second pass."""
+        """[B, K * S]: the goal distances after the hypotheses at each scored stretch, by the second pass."""
         return self.goal_distances(flow, state_n, self.changes(flow, state_n, chunks_n, features))
 
     def scorer_loss(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, changes: torch.Tensor) -> torch.Tensor:
         """The second pass's loss on hypotheses [B, K, H, A] that the teacher's outcome model says move the block by `changes`
-        [B, K, 3] (its network's output): their squared error, plus the expected regret of a softmax pick by the scores
+        [B, K * S, 3] at the scored stretches (its network's output): their squared error, plus the expected regret of a softmax pick by the scores
         (in `score_target` units: what a wrong pick costs)."""
         predicted = self.changes(flow, state_n, chunks_n)
         scores, target = (score_target(self.goal_distances(flow, state_n, c)) for c in (predicted, changes))
@@ -141,39 +161,51 @@ class OnePassChooser(nn.Module):
         as far from the agent, as `training.outcome.OutcomeSelector` offers it). Deterministic: `noise` [B, H, A] is unused."""
         if self.scorer is None:
             chunks_n, scores = self(flow, state_n)
+            stretches = self.stretches
         else:  # the features once for both passes, and the distances themselves: their argmin is the scores'
             features = head_features(flow, state_n)
             chunks_n, _ = self._split(self.net(features))
             scores = self._distances(flow, state_n, chunks_n, features)
+            stretches = self.scorer_stretches
         # A zero term keeps `noise` an input of the exported graph, as the ONNX contract has every flow take it.
         best = (scores + 0.0 * noise.flatten(1)[:, :1]).argmin(dim=1)
         index = torch.remainder(best, self.candidates).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
         chunk_n = torch.gather(chunks_n, 1, index).squeeze(1)
-        if len(self.stretches) == 1 and self.stretches[0] == 1.0:
+        if stretches == (1.0,):
             return chunk_n
-        factor = torch.tensor(self.stretches, dtype=state_n.dtype, device=state_n.device)[torch.div(best, self.candidates, rounding_mode="floor")]
+        factor = torch.tensor(stretches, dtype=state_n.dtype, device=state_n.device)[torch.div(best, self.candidates, rounding_mode="floor")]
         state = flow.normalizer.env_state(state_n[:, : flow.state_dim])
-        return flow.normalizer.chunk(state, stretch(state, flow.normalizer.actions(state, chunk_n), factor.reshape(-1, 1, 1)))
+        actions = flow.normalizer.actions(state, chunk_n)
+        if self.scorer is None:  # as the chooser stretches its candidates
+            return flow.normalizer.chunk(state, stretch(state, actions, factor.reshape(-1, 1, 1)))
+        # as the second pass's labels stretch the hypotheses (`scored_actions`): clipped before and after
+        return flow.normalizer.chunk(state, _stretched(state, torch.clamp(actions, ACTION_LOW, ACTION_HIGH), factor.reshape(-1, 1, 1)))
 
 
 class SharedScorer(nn.Module):
     """A second pass whose layers the K hypotheses share (a set network, one pass over all K): each layer maps every
     hypothesis alike and adds a map of their mean, so each learns from all K slots; the state's features enter once."""
 
-    def __init__(self, feature_dim: int, chunk_dim: int, dims: Sequence[int]) -> None:
+    def __init__(self, feature_dim: int, chunk_dim: int, dims: Sequence[int], outputs: int = 3) -> None:
         super().__init__()
         self.state = nn.Linear(feature_dim, dims[0])
         self.chunk = nn.Linear(chunk_dim, dims[0], bias=False)
         self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
         self.context = nn.ModuleList(nn.Linear(a, b, bias=False) for a, b in zip(dims[:-1], dims[1:]))
-        self.out = nn.Linear(dims[-1], 3)
+        self.out = nn.Linear(dims[-1], outputs)
 
     def forward(self, features: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
-        """[B, K, 3] from the state's features [B, F] and the K hypotheses' targets in the block's frame [B, K, H * A]."""
+        """[B, K, outputs] from the state's features [B, F] and the K hypotheses' targets in the block's frame [B, K, H * A]."""
         h = F.silu(self.chunk(chunks) + self.state(features)[:, None])
         for layer, context in zip(self.hidden, self.context):
             h = F.silu(layer(h) + context(h.mean(dim=1, keepdim=True)))
         return self.out(h)
+
+
+def _stretched(state: torch.Tensor, actions: torch.Tensor, factor: float | torch.Tensor) -> torch.Tensor:
+    """Clipped env-unit actions [B, ..., H, A] stretched by `factor` from the agent of states [B, S] (`stretch`), clipped again."""
+    agent = state[:, : actions.shape[-1]].reshape(len(state), *([1] * (actions.dim() - 2)), actions.shape[-1])
+    return torch.clamp(agent + factor * (actions - agent), ACTION_LOW, ACTION_HIGH)
 
 
 def head_features(flow: nn.Module, state_n: torch.Tensor) -> torch.Tensor:

@@ -50,19 +50,21 @@ class LeanScoredChoice(nn.Module):
         if not _fits(flow):
             raise ValueError("a lean graph needs a scoring student of the shipped flows' inputs (see lean_graph)")
         head = flow.onepass
-        self.k, self.chunk_shape = head.candidates, head.chunk_shape
+        self.k, self.chunk_shape, self.scored = head.candidates, head.chunk_shape, head.scored
+        self.stretched = head.scorer_stretches != (1.0,)
+        self.register_buffer("stretches", torch.tensor(head.scorer_stretches, dtype=torch.float32))
         with torch.no_grad():
             linear = _feature_map(flow)  # features [20] = z [10] @ linear[:10] + linear[10]
             gen = [m for m in head.net if isinstance(m, nn.Linear)]
             sco = [m for m in head.scorer if isinstance(m, nn.Linear)]
             self.gen = nn.ModuleList([_fold_first(gen[0], linear), *(copy.deepcopy(m) for m in gen[1:-1]), _fold_actions(gen[-1], flow, head)])
             first, self.frame = _fold_scorer_first(sco[0], linear)
-            self.sco = nn.ModuleList([first, *(copy.deepcopy(m) for m in sco[1:-1]), _fold_changes(sco[-1], head.candidates)])
+            self.sco = nn.ModuleList([first, *(copy.deepcopy(m) for m in sco[1:-1]), _fold_changes(sco[-1], head.scored)])
             self.register_buffer("corners", _corner_map())  # [5, 12]: [d_x, d_y, cos, sin, 1] -> corner differences
             self.register_buffer("goal", torch.tensor(GOAL_POSE[:2], dtype=torch.float32))
 
     def forward(self, state: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-        """Clipped actions [B, H, A]: the hypothesis whose predicted outcome leaves the tee's corners nearest the goal's."""
+        """Clipped actions [B, H, A]: the hypothesis (at the stretch) whose predicted outcome leaves the tee's corners nearest the goal's."""
         agent, block, angle = state[:, 0:2], state[:, 2:4], state[:, 4:5]
         cos, sin = torch.cos(angle), torch.sin(angle)
         offset = agent - block
@@ -77,15 +79,19 @@ class LeanScoredChoice(nn.Module):
         h = nn.functional.silu(self.sco[0](z) + self.frame(frame))  # one layer on [z, frame], split so the frame's part can go int8
         for layer in self.sco[1:-1]:
             h = nn.functional.silu(layer(h))
-        change = self.sco[-1](h).reshape(-1, self.k, 3)
+        change = self.sco[-1](h).reshape(-1, self.scored, 3)  # the K hypotheses at each scored stretch in turn
         moved = torch.matmul(change[:, :, :2], to_block.transpose(1, 2)) + (block - self.goal)[:, None]
         turned = angle[:, None] + change[:, :, 2:]
         pose = torch.cat([moved, torch.cos(turned), torch.sin(turned)], dim=2)
         distance = torch.matmul(pose, self.corners[:4]).add(self.corners[4]).pow(2).sum(dim=2)
         # A zero term keeps `noise` an input of the exported graph, as the ONNX contract has every flow take it.
         best = (distance + 0.0 * noise[:, 0, :1]).argmin(dim=1)
-        index = best.reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
-        return torch.gather(actions.reshape(-1, self.k, *self.chunk_shape), 1, index).squeeze(1)
+        index = torch.remainder(best, self.k).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
+        chosen = torch.gather(actions.reshape(-1, self.k, *self.chunk_shape), 1, index).squeeze(1)
+        if not self.stretched:
+            return chosen
+        factor = self.stretches[torch.div(best, self.k, rounding_mode="floor")].reshape(-1, 1, 1)
+        return torch.clamp(agent[:, None] + factor * (chosen - agent[:, None]), ACTION_LOW, ACTION_HIGH)
 
 
 def _feature_map(flow: nn.Module) -> torch.Tensor:
@@ -137,9 +143,9 @@ def _fold_actions(layer: nn.Linear, flow: nn.Module, head: nn.Module) -> nn.Line
     return _linear((w * std[:, None]).float(), (b * std + mean).float())
 
 
-def _fold_changes(layer: nn.Linear, k: int) -> nn.Linear:
+def _fold_changes(layer: nn.Linear, scored: int) -> nn.Linear:
     """The scorer's last layer in env units (px, px, rad) instead of the outcome model's."""
-    scale = torch.tensor(_POSE_SCALE, dtype=torch.float64).repeat(k)
+    scale = torch.tensor(_POSE_SCALE, dtype=torch.float64).repeat(scored)
     return _linear((layer.weight.double() * scale[:, None]).float(), (layer.bias.double() * scale).float())
 
 
