@@ -8,7 +8,8 @@ agent's offset from the block times them), the action statistics go into the gen
 block frame's scale into the scorer's first, the outcome units into its last; the goal distance of the tee's
 corners after each hypothesis is one small product with a constant matrix. The scorer's first layer is kept as
 two (on z, and on the hypotheses' targets: `frame`) so that `training.quantize` can take the second to int8
-and leave the first, which sees pixels beside sines, in float32. Float rounding differs from the module's, so a
+and leave the first, which sees pixels beside sines, in float32. A shared (set-network) pass runs each hypothesis
+as a row of its own, so its layers are plain products that quantize alike; the maps of their mean stay float32. Float rounding differs from the module's, so a
 choice between two hypotheses tied to about 1e-6 may differ; nothing else does.
 """
 
@@ -23,6 +24,7 @@ from torch import nn
 from pusht.geometry import GOAL_POSE
 from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import _CORNERS, _CENTER, _SCALE
+from training.onepass import SharedScorer
 from training.outcome import _FRAME_SCALE, _POSE_SCALE
 
 __all__ = ["LeanScoredChoice", "lean_graph"]
@@ -37,7 +39,7 @@ def _fits(flow: nn.Module) -> bool:
     """Whether the folding below holds: a scoring head, a 5-d state seen as z-scores and the angle's sine and cosine (no
     history or pace input), 2-d actions relative to the agent."""
     head = getattr(flow, "onepass", None)
-    return (head is not None and isinstance(head.scorer, nn.Sequential) and head.stretches == (1.0,) and flow.state_dim == 5
+    return (head is not None and isinstance(head.scorer, (nn.Sequential, SharedScorer)) and head.stretches == (1.0,) and flow.state_dim == 5
             and head.chunk_shape[1] == 2 and flow.angle_encoding == "sincos" and not flow.prev_state and not flow.pace_input
             and flow.normalizer.action_frame == "agent")
 
@@ -56,10 +58,21 @@ class LeanScoredChoice(nn.Module):
         with torch.no_grad():
             linear = _feature_map(flow)  # features [20] = z [10] @ linear[:10] + linear[10]
             gen = [m for m in head.net if isinstance(m, nn.Linear)]
-            sco = [m for m in head.scorer if isinstance(m, nn.Linear)]
             self.gen = nn.ModuleList([_fold_first(gen[0], linear), *(copy.deepcopy(m) for m in gen[1:-1]), _fold_actions(gen[-1], flow, head)])
-            first, self.frame = _fold_scorer_first(sco[0], linear)
-            self.sco = nn.ModuleList([first, *(copy.deepcopy(m) for m in sco[1:-1]), _fold_changes(sco[-1], head.scored)])
+            # A shared pass's layers map each hypothesis as a row of its own [B * K, ...], plus a map of their mean (`context`).
+            self.shared = isinstance(head.scorer, SharedScorer)
+            if self.shared:
+                scorer = head.scorer
+                first, self.frame = _fold_scorer_first(scorer.state.weight, scorer.state.bias, scorer.chunk.weight, linear)
+                sco = [first, *(copy.deepcopy(m) for m in scorer.hidden), _fold_changes(scorer.out, len(head.scorer_stretches))]
+                self.context = copy.deepcopy(scorer.context)
+            else:
+                layers = [m for m in head.scorer if isinstance(m, nn.Linear)]
+                w = layers[0].weight
+                first, self.frame = _fold_scorer_first(w[:, :20], layers[0].bias, w[:, 20:], linear)
+                sco = [first, *(copy.deepcopy(m) for m in layers[1:-1]), _fold_changes(layers[-1], head.scored)]
+            self.sco = nn.ModuleList(sco)
+            self.stretch_count = len(head.scorer_stretches)
             self.register_buffer("corners", _corner_map())  # [5, 12]: [d_x, d_y, cos, sin, 1] -> corner differences
             self.register_buffer("goal", torch.tensor(GOAL_POSE[:2], dtype=torch.float32))
 
@@ -75,11 +88,8 @@ class LeanScoredChoice(nn.Module):
         actions = torch.clamp(self.gen[-1](h).reshape(-1, self.k * self.chunk_shape[0], 2) + agent[:, None], ACTION_LOW, ACTION_HIGH)
         # [[cos, -sin], [sin, cos]]: rows @ it rotates world vectors into the block's frame, its transpose back out.
         to_block = torch.cat([cos, -sin, sin, cos], dim=1).reshape(-1, 2, 2)
-        frame = torch.matmul(actions - block[:, None], to_block).flatten(1)
-        h = nn.functional.silu(self.sco[0](z) + self.frame(frame))  # one layer on [z, frame], split so the frame's part can go int8
-        for layer in self.sco[1:-1]:
-            h = nn.functional.silu(layer(h))
-        change = self.sco[-1](h).reshape(-1, self.scored, 3)  # the K hypotheses at each scored stretch in turn
+        frame = torch.matmul(actions - block[:, None], to_block)
+        change = self._shared_changes(z, frame) if self.shared else self._changes(z, frame)  # the K at each scored stretch in turn
         moved = torch.matmul(change[:, :, :2], to_block.transpose(1, 2)) + (block - self.goal)[:, None]
         turned = angle[:, None] + change[:, :, 2:]
         pose = torch.cat([moved, torch.cos(turned), torch.sin(turned)], dim=2)
@@ -92,6 +102,25 @@ class LeanScoredChoice(nn.Module):
             return chosen
         factor = self.stretches[torch.div(best, self.k, rounding_mode="floor")].reshape(-1, 1, 1)
         return torch.clamp(agent[:, None] + factor * (chosen - agent[:, None]), ACTION_LOW, ACTION_HIGH)
+
+
+    def _changes(self, z: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+        """[B, K * S, 3]: the side-by-side pass on z [B, 10] and all K hypotheses' targets in the block's frame [B, K * H, 2]."""
+        h = nn.functional.silu(self.sco[0](z) + self.frame(frame.flatten(1)))  # one layer on [z, frame], split so the frame's part can go int8
+        for layer in self.sco[1:-1]:
+            h = nn.functional.silu(layer(h))
+        return self.sco[-1](h).reshape(-1, self.scored, 3)
+
+    def _shared_changes(self, z: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+        """[B, K * S, 3]: the shared pass, each hypothesis a row [B * K, ...] so that every layer is one plain product."""
+        k = self.k
+        first = self.frame(frame.reshape(-1, self.chunk_shape[0] * 2))
+        h = nn.functional.silu((first.reshape(-1, k, first.shape[1]) + self.sco[0](z)[:, None]).reshape(-1, first.shape[1]))
+        for layer, context in zip(self.sco[1:-1], self.context):
+            mean = h.reshape(-1, k, h.shape[1]).mean(dim=1)
+            out = layer(h)
+            h = nn.functional.silu((out.reshape(-1, k, out.shape[1]) + context(mean)[:, None]).reshape(-1, out.shape[1]))
+        return self.sco[-1](h).reshape(-1, k, self.stretch_count, 3).transpose(1, 2).reshape(-1, self.scored, 3)
 
 
 def _feature_map(flow: nn.Module) -> torch.Tensor:
@@ -125,13 +154,12 @@ def _fold_first(layer: nn.Linear, linear: torch.Tensor) -> nn.Linear:
     return _linear((w @ linear[:10].double().T).float(), (layer.bias.double() + w @ linear[10].double()).float())
 
 
-def _fold_scorer_first(layer: nn.Linear, linear: torch.Tensor) -> tuple[nn.Linear, nn.Linear]:
+def _fold_scorer_first(on_features: torch.Tensor, bias: torch.Tensor, on_targets: torch.Tensor, linear: torch.Tensor) -> tuple[nn.Linear, nn.Linear]:
     """The scorer's first layer on z (with its bias) and on the targets in the block's frame, unscaled (a zero bias), instead
-    of one layer on [features, scaled targets]."""
-    w = layer.weight.double()
-    features, targets = w[:, :20], w[:, 20:] / _FRAME_SCALE
-    on_z = _linear((features @ linear[:10].double().T).float(), (layer.bias.double() + features @ linear[10].double()).float())
-    return on_z, _linear(targets.float(), torch.zeros(w.shape[0]))
+    of its weights on the 20 features and on the scaled targets."""
+    features, targets = on_features.double(), on_targets.double() / _FRAME_SCALE
+    on_z = _linear((features @ linear[:10].double().T).float(), (bias.double() + features @ linear[10].double()).float())
+    return on_z, _linear(targets.float(), torch.zeros(targets.shape[0]))
 
 
 def _fold_actions(layer: nn.Linear, flow: nn.Module, head: nn.Module) -> nn.Linear:
