@@ -18,7 +18,7 @@ from training.checkpoint import load_acting_policy, load_card, load_checkpoint
 from training.distill import DistillConfig, distill
 from training.distill_data import PAIRS_FILE, teacher_choices
 from training.export import export_onnx
-from training.onepass import OnePassChooser, score_target
+from training.onepass import OnePassChooser, first_nearest, score_target
 from training.outcome import goal_corner_distance, nearest, pose_after
 
 REPO = Path(__file__).resolve().parent.parent
@@ -195,7 +195,9 @@ def test_a_second_pass_with_stretches_learns_the_outcome_of_each_hypothesis_stre
     with torch.no_grad():
         np.testing.assert_array_equal(head.scores(student, state_n, chunks_n).argmin(dim=1).numpy(), nearest_.numpy())
         options = torch.cat([plain.reshape(6, 3, 12, 2), stretched.reshape(6, 3, 12, 2)], dim=1)
-        want = options[torch.arange(6), nearest_]
+        # the first within the tie margin of its own nearest (choices that miss the block tie)
+        pick = first_nearest(head.goal_distances(student, state_n, head.changes(student, state_n, chunks_n)))
+        want = options[torch.arange(6), pick]
         played = student.normalizer.actions(state, head.best_chunk(student, state_n, torch.zeros(6, 12, 2)))
         torch.testing.assert_close(played, want, atol=1e-3, rtol=0)
     assert set(nearest_.tolist()) & {3, 4, 5}  # some play stretched
@@ -286,3 +288,8 @@ def test_a_shared_second_pass_treats_every_hypothesis_alike_and_exports(tmp_path
     torch_policy = load_policy(tmp_path / "flow")  # the torch backend: the module itself
     want = torch_policy.act(STATES, np.zeros((6, 12, 2), np.float32))
     np.testing.assert_allclose(policy.act(STATES, np.zeros((6, 12, 2), np.float32)), want, atol=1e-3)
+
+
+def test_a_near_tie_goes_to_the_earlier_choice() -> None:
+    distance = torch.tensor([[1.0, 1.0005, 0.9999], [2.0, 1.0, 1.0], [0.5, 0.4, 0.3]])
+    assert first_nearest(distance).tolist() == [0, 1, 2]

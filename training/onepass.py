@@ -31,9 +31,9 @@ from torch.nn import functional as F
 from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import KEYPOINT_FEATURES, tee_keypoints
 from training.networks import silu_mlp
-from training.outcome import agent_in_block_frame, goal_corner_distance, pose_after, stretch, targets_in_block_frame
+from training.outcome import TIE_MARGIN, agent_in_block_frame, goal_corner_distance, pose_after, stretch, targets_in_block_frame
 
-__all__ = ["CHOICE_WEIGHT", "EXTRA_FEATURES", "OnePassChooser", "head_features", "score_target", "winner_takes_all"]
+__all__ = ["CHOICE_WEIGHT", "EXTRA_FEATURES", "OnePassChooser", "first_nearest", "head_features", "score_target", "winner_takes_all"]
 
 EXTRA_FEATURES = KEYPOINT_FEATURES + 2
 """what `head_features` adds to the flow's encoded state: the tee's corners and the agent in the block's frame"""
@@ -159,16 +159,16 @@ class OnePassChooser(nn.Module):
     def best_chunk(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """The normalized chunk [B, H, A]: the best-scored candidate at its stretch (a stretch s moves every target s times
         as far from the agent, as `training.outcome.OutcomeSelector` offers it). Deterministic: `noise` [B, H, A] is unused."""
+        # A zero term keeps `noise` an input of the exported graph, as the ONNX contract has every flow take it.
         if self.scorer is None:
             chunks_n, scores = self(flow, state_n)
             stretches = self.stretches
+            best = (scores + 0.0 * noise.flatten(1)[:, :1]).argmin(dim=1)
         else:  # the features once for both passes, and the distances themselves: their argmin is the scores'
             features = head_features(flow, state_n)
             chunks_n, _ = self._split(self.net(features))
-            scores = self._distances(flow, state_n, chunks_n, features)
             stretches = self.scorer_stretches
-        # A zero term keeps `noise` an input of the exported graph, as the ONNX contract has every flow take it.
-        best = (scores + 0.0 * noise.flatten(1)[:, :1]).argmin(dim=1)
+            best = first_nearest(self._distances(flow, state_n, chunks_n, features) + 0.0 * noise.flatten(1)[:, :1])
         index = torch.remainder(best, self.candidates).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
         chunk_n = torch.gather(chunks_n, 1, index).squeeze(1)
         if stretches == (1.0,):
@@ -222,6 +222,13 @@ def winner_takes_all(chunks_n: torch.Tensor, target: torch.Tensor, relax: float)
     error = (chunks_n[:, None] - targets[:, :, None]).pow(2).mean(dim=(3, 4))  # [B, M, K]
     nearest = error.argmin(dim=2)
     return (1 - relax) * error.gather(2, nearest[..., None]).mean() + relax * error.mean(), nearest[:, 0]
+
+
+def first_nearest(distance: torch.Tensor) -> torch.Tensor:
+    """Index [B] of the first of the choices' goal distances [B, C] within `TIE_MARGIN` (relative) of the least. Hypotheses
+    that miss the block tie to the last bit, and torch and ONNX Runtime round differently: the earlier one plays in both."""
+    least = distance.min(dim=1, keepdim=True).values
+    return (distance <= least * (1 + TIE_MARGIN)).float().argmax(dim=1)
 
 
 def score_target(distance: torch.Tensor) -> torch.Tensor:

@@ -24,7 +24,7 @@ from torch import nn
 from pusht.geometry import GOAL_POSE
 from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import _CORNERS, _CENTER, _SCALE
-from training.onepass import SharedScorer
+from training.onepass import SharedScorer, first_nearest
 from training.outcome import _FRAME_SCALE, _POSE_SCALE
 
 __all__ = ["LeanScoredChoice", "lean_graph"]
@@ -95,7 +95,7 @@ class LeanScoredChoice(nn.Module):
         pose = torch.cat([moved, torch.cos(turned), torch.sin(turned)], dim=2)
         distance = torch.matmul(pose, self.corners[:4]).add(self.corners[4]).pow(2).sum(dim=2)
         # A zero term keeps `noise` an input of the exported graph, as the ONNX contract has every flow take it.
-        best = (distance + 0.0 * noise[:, 0, :1]).argmin(dim=1)
+        best = first_nearest(distance + 0.0 * noise[:, 0, :1])
         index = torch.remainder(best, self.k).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
         chosen = torch.gather(actions.reshape(-1, self.k, *self.chunk_shape), 1, index).squeeze(1)
         if not self.stretched:
