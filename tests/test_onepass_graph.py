@@ -1,6 +1,6 @@
 """A scoring student's lean graph acts as its module does in a fraction of the ONNX nodes, and --int8 quantizes its
-hidden layers (row by row: no row depends on its batch), records how closely it follows the float32 graph, and is
-refused for any other checkpoint."""
+hidden layers (fixed activation scales: no row depends on its batch), records how closely it follows the float32 graph,
+and is refused for any other checkpoint."""
 
 from __future__ import annotations
 
@@ -83,13 +83,15 @@ def test_int8_quantizes_the_hidden_layers_and_records_their_agreement(tmp_path: 
     layers = ["lean.gen.1.weight", "lean.gen.2.weight", "lean.frame.weight", "lean.sco.1.weight"]
     assert info["layers"] == layers and "int8:" in capsys.readouterr().out
     model = onnx.load(str(stem.with_suffix(".onnx")))
-    assert sum(n.op_type == "MatMulInteger" for n in model.graph.node) == 4
+    # each quantized layer is two nodes: its input to uint8 at a fixed scale, and the integer product back to float
+    assert sum(n.op_type == "MatMulIntegerToFloat" for n in model.graph.node) == 4
+    assert sum(n.op_type == "QuantizeLinear" for n in model.graph.node) == 4
     assert 0 <= info["median_px"] <= info["p90_px"] < 512
     policy = load_policy(stem.with_suffix(".onnx"))
     quantized = policy.act(state, noise)
     assert quantized.shape == plain.shape and np.all((quantized >= 0) & (quantized <= 512))
     assert float(np.median(np.abs(quantized - plain).reshape(256, -1).max(axis=1))) < 20.0
-    # Activations are scaled row by row: a row's actions do not depend on the rest of its call.
+    # Activations have fixed scales: a row's actions do not depend on the rest of its call.
     alone = np.concatenate([policy.act(state[i : i + 1], noise[i : i + 1]) for i in range(0, 256, 17)])
     np.testing.assert_array_equal(alone, quantized[::17])
     # Exported again without the flag (as `training.export` re-exports models/), the card's int8 graph comes back.

@@ -36,6 +36,9 @@ from training.quantize import agreement, quantize_hidden
 OPSET = 18
 # Exported and torch actions must agree to this many pixels on random states (float32 rounding only).
 VERIFY_ATOL = 1e-3
+CALIBRATION_DATA = Path(__file__).resolve().parents[1] / "data" / "pusht_lowdim.zarr"
+CALIBRATION_STATES = 4096
+"""--int8 calibrates each layer's input scale on this many states of the project's demonstrations"""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -128,7 +131,7 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
         except Exception as exc:  # torch.export / onnxscript raise their own error types
             raise ValueError(f"{stem}: ONNX export failed: {type(exc).__name__}: {exc}") from exc
         max_diff = verify_onnx(tmp, acting)
-        quantized = _quantize(tmp, acting, inputs) if int8 else None
+        quantized = _quantize(tmp, acting) if int8 else None
         opset = _model_opset(tmp)  # the exporter may raise a requested opset; record what the file has
         tmp.replace(out)
     finally:
@@ -177,14 +180,22 @@ def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...]
     return worst
 
 
-def _quantize(path: Path, acting: ActingPolicy, inputs: list[str], rows: int = 2048) -> dict[str, Any]:
-    """Quantize the file's hidden layers in place; their names and the agreement with the float32 graph on random states
-    (`inputs`: the graph's input names)."""
-    example = _example_inputs(acting, batch=rows, seed=2000)
-    feeds = {name: t.numpy() for name, t in zip(inputs, example)}
-    reference = onnx_session(path).run(["actions"], feeds)[0]
-    layers = quantize_hidden(path)
-    return {"layers": layers, **agreement(reference, onnx_session(path).run(["actions"], feeds)[0])}
+def _quantize(path: Path, acting: ActingPolicy, rows: int = 2048) -> dict[str, Any]:
+    """Quantize the file's hidden layers in place, calibrated on `CALIBRATION_STATES` states of the demonstrations (where
+    policies go: random states reach activations no episode does); their names and the agreement with the float32 graph on
+    `rows` other states of them."""
+    from training.data import load_replay
+
+    shown = load_replay(CALIBRATION_DATA).states.astype(np.float32)
+    pick = np.random.default_rng(0).permutation(len(shown))
+    calibration, check = shown[pick[:CALIBRATION_STATES]], shown[pick[CALIBRATION_STATES : CALIBRATION_STATES + rows]]
+
+    def feeds(states: np.ndarray) -> dict[str, np.ndarray]:
+        return {"state": states, "noise": np.zeros((len(states), acting.policy.horizon, acting.policy.action_dim), np.float32)}
+
+    reference = onnx_session(path).run(["actions"], feeds(check))[0]
+    layers = quantize_hidden(path, feeds(calibration))
+    return {"layers": layers, **agreement(reference, onnx_session(path).run(["actions"], feeds(check))[0])}
 
 
 def _model_opset(path: Path) -> int:
