@@ -117,3 +117,10 @@ def test_dagger_refuses_folders_without_corrections(tmp_path, capsys):
     corrected_episode(tmp_path / "policy-only", policy_steps=15, human_steps=0, after=0)
     assert dagger.main([*argv, str(tmp_path / "policy-only")]) == 2
     assert "no human-labelled steps" in capsys.readouterr().err
+
+
+def test_dagger_refuses_a_one_pass_student(tmp_path, corrections, capsys):
+    student = REPO / "records" / "distill-mc16-shared192" / "student"
+    argv = ["--model", str(student), "--name", "r", "--out-dir", str(tmp_path / "runs"), "--no-progress", "--corrections", str(corrections)]
+    assert dagger.main(argv) == 2
+    assert "is a one-pass student" in capsys.readouterr().err and not (tmp_path / "runs").exists()

@@ -85,6 +85,9 @@ def dagger_round(args: argparse.Namespace) -> dict[str, Any]:
 
     stem = card_stem(args.model)
     card = read_card(stem).data
+    if (card.get("architecture") or {}).get("onepass_dims"):
+        raise ValueError(f"{stem} is a one-pass student (onepass_dims): fine-tuning would train its teacher's flow network, "
+                         f"which it does not act with; distil it again from its teacher ({card.get('teacher')}) with more rounds")
     stores, counts = correction_stores(args.corrections)
     base_config = _training_config(card)
     recipe = {k: base_config[k] for k in RECIPE_KEYS if k in base_config}
