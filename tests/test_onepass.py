@@ -229,6 +229,9 @@ def test_a_second_pass_run_scores_a_multichoice_students_hypotheses_in_two_evalu
     assert card["architecture"]["onepass_scorer_dims"] == [16, 16] and "--scorer-dims 16,16" in card["reproduce"]["distill"]
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert {"scorer", "scorer_round", "scorer_eval"} <= {r.get("type") for r in records}
+    # it keeps the states it learned from, for the next run's --states-from
+    kept = next(r["states"] for r in records if r.get("type") == "scorer_round")
+    assert _saved_states(run) == kept > 32
     export_onnx(run / "last", run / "last.onnx")
     policy = load_policy(run / "last.onnx")
     assert policy.network_evaluations() == 2 and not policy.uses_noise
@@ -240,7 +243,7 @@ def test_a_second_pass_run_scores_a_multichoice_students_hypotheses_in_two_evalu
     np.testing.assert_allclose(policy.act(STATES, np.zeros((6, 12, 2), np.float32)), want, atol=1e-3)  # ONNX plays the best-scored
     # --init with a second pass of the same widths goes on training it (a tiny rate leaves it where it was); of other widths,
     # its hypotheses get a fresh one
-    more = distill(dataclasses.replace(cfg, name="s2", init=str(run / "last"), scorer_lr=1e-12, scorer_rounds=0, states_from="")).dir
+    more = distill(dataclasses.replace(cfg, name="s2", init=str(run / "last"), scorer_lr=1e-12, scorer_rounds=0, states_from=str(run))).dir
     trained, again = student.onepass.scorer.state_dict(), load_checkpoint(more / "last")[0].onepass.scorer.state_dict()
     for name, tensor in trained.items():
         torch.testing.assert_close(again[name], tensor)

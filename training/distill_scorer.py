@@ -7,7 +7,8 @@ pass (`OnePassChooser.changes`, `--scorer-dims`) regresses it, all K at once; th
 exactly, and the nearest plays. The
 hypotheses stay frozen; the labels cost K outcome-model passes a state and no flow integration, so
 the scorer learns from every state the run holds and then, DAgger-style, from the states of episodes it
-plays itself (`--scorer-rounds`).
+plays itself (`--scorer-rounds`); after each round the run keeps them all (its pairs file, states only), so that
+the next run can start where this one went (`--states-from`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import time
 import numpy as np
 import torch
 
-__all__ = ["hypothesis_changes", "train_scorer"]
+__all__ = ["hypothesis_changes", "save_states", "train_scorer"]
 
 LABEL_BATCH = 4096
 
@@ -26,7 +27,7 @@ LABEL_BATCH = 4096
 def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: torch.Generator) -> dict:
     """Train `student.onepass.scorer` on where the teacher's outcome model says the student's hypotheses leave the block at the
     network inputs `state_n` [N, S'] (then `cfg.scorer_rounds` rounds of its own episodes' states); returns the last evaluation."""
-    from training.distill_data import decision_pairs
+    from training.distill_data import PAIRS_FILE, decision_pairs
     from training.evaluate import evaluate_policy
     from training.policies import ActingPolicy
 
@@ -43,6 +44,7 @@ def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: t
             state_n, changes = torch.cat([state_n, new]), torch.cat([changes, hypothesis_changes(student, teacher, new)])
             run.log({"type": "scorer_round", "step": round_, "round": round_, "states": len(state_n), "elapsed_s": run.elapsed_s,
                      **{f"played_{k}": v for k, v in scores.items()}})
+            save_states(run.dir / PAIRS_FILE, state_n, cfg.teacher)
         steps = cfg.scorer_steps if round_ == 0 else cfg.scorer_steps // 2
         lr = cfg.scorer_lr if round_ == 0 else cfg.scorer_lr / 3
         _fit(student, state_n, changes, optimizer, steps, lr, run, cfg, generator, round_)
@@ -51,6 +53,14 @@ def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: t
         evaluation = {"scorer_round": round_, **{k: v for k, v in summary.scores().items() if k != "wall_time_s"}}
         run.log({"type": "scorer_eval", "step": round_, **evaluation})
     return evaluation
+
+
+def save_states(path, state_n: torch.Tensor, teacher: str) -> None:
+    """Keep the network inputs [N, S'] the second pass learned from (a run's pairs file with states only), so that another
+    run can start from them (`--states-from`)."""
+    from safetensors.torch import save_file
+
+    save_file({"state_n": state_n.contiguous()}, str(path), metadata={"teacher": str(teacher), "labels": "states"})
 
 
 @torch.no_grad()
