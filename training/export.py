@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
             status = 2
             continue
         note = "card updated" if info["card_updated"] else "not beside the card: card left unchanged"
-        int8 = f"; int8: {info['int8']}" if "int8" in info else ""
+        int8 = f"; int8: { {k: v for k, v in info['int8'].items() if k != 'inputs'} }" if "int8" in info else ""
         print(f"{stem} -> {out} (inputs {info['inputs']}, outputs {info['outputs']}, opset {info['opset']}, max diff {info['max_abs_diff']:.2e} px{int8}; {note})")
     return status
 
@@ -194,8 +194,8 @@ def _quantize(path: Path, acting: ActingPolicy, rows: int = 2048) -> dict[str, A
         return {"state": states, "noise": np.zeros((len(states), acting.policy.horizon, acting.policy.action_dim), np.float32)}
 
     reference = onnx_session(path).run(["actions"], feeds(check))[0]
-    layers = quantize_hidden(path, feeds(calibration))
-    return {"layers": layers, **agreement(reference, onnx_session(path).run(["actions"], feeds(check))[0])}
+    inputs = quantize_hidden(path, feeds(calibration))
+    return {"layers": list(inputs), "inputs": inputs, **agreement(reference, onnx_session(path).run(["actions"], feeds(check))[0])}
 
 
 def _model_opset(path: Path) -> int:

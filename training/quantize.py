@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ACTIVATION_PERCENTILE", "FRAME_WEIGHT", "LAYER_WEIGHT", "WEIGHT_STEPS", "agreement", "quantize_hidden"]
+__all__ = ["ACTIVATION_PERCENTILE", "FRAME_WEIGHT", "LAYER_WEIGHT", "WEIGHT_STEPS", "agreement", "input_scale", "quantize_hidden",
+           "quantize_weights"]
 
 ACTIVATION_PERCENTILE = 99.9
 """a layer's input scale spans this percentile of its calibration values (and 100 minus it); beyond, values saturate"""
@@ -36,9 +37,10 @@ FRAME_WEIGHT = re.compile(r"(^|\.)frame\.weight$")
 """the scoring pass's first layer's part on the hypotheses' targets in the block's frame (signed pixels)"""
 
 
-def quantize_hidden(path: str | Path, feeds: dict[str, np.ndarray]) -> list[str]:
+def quantize_hidden(path: str | Path, feeds: dict[str, np.ndarray]) -> dict[str, list[float]]:
     """Quantize, in place, the ONNX file's generator layers after the first, the scoring pass's part on the hypotheses and its
-    layers between its first and last, each input's scale calibrated on the graph's inputs `feeds`; returns their weights' names."""
+    layers between its first and last, each input's scale calibrated on the graph's inputs `feeds`; returns each one's weight
+    name and its input's [scale, zero point] (what `training.int8_module` needs to play the same graph in torch)."""
     import onnx
 
     path = Path(path)
@@ -52,14 +54,15 @@ def quantize_hidden(path: str | Path, feeds: dict[str, np.ndarray]) -> list[str]
     if not targets:
         raise ValueError(f"{path}: no hidden layers to quantize (a scoring student's lean graph has them)")
     ranges = _input_ranges(model, targets, feeds)
-    nodes, added, chosen = [], [], []
+    nodes, added, chosen = [], [], {}
     for node in model.graph.node:
         if any(node is t for t in targets):
             _check_linear(node, path)
-            new, constants = _quantized_linear(node, weights, *ranges[node.input[0]], signed=FRAME_WEIGHT.search(node.input[1]) is not None)
+            scale, zero = input_scale(*ranges[node.input[0]], signed=FRAME_WEIGHT.search(node.input[1]) is not None)
+            new, constants = _quantized_linear(node, weights, scale, zero)
             nodes.extend(new)
             added.extend(constants)
-            chosen.append(node.input[1])
+            chosen[node.input[1]] = [scale, zero]
             continue
         nodes.append(node)
     del model.graph.node[:]
@@ -112,25 +115,33 @@ def _check_linear(node, path: Path) -> None:
         raise ValueError(f"{path}: {node.name} is not a plain linear layer (x @ W.T + b)")
 
 
-def _quantized_linear(node, weights: dict, low: float, high: float, signed: bool) -> tuple[list, list]:
-    """The nodes and constants of y = x @ W.T + b with int8 W (per output unit) and x in uint8 over [low, high]: from 0 (a
-    SiLU's output, at least -0.28) with a zero point, or with `signed` symmetric around 128."""
+def input_scale(low: float, high: float, signed: bool) -> tuple[float, int]:
+    """A layer input's float32 uint8 scale and zero point over [low, high]: from 0 (a SiLU's output, at least -0.28) with a
+    zero point, or with `signed` symmetric around 128."""
+    if signed:
+        return float(np.float32(max(abs(low), abs(high), 1e-12) / 127.0)), 128
+    low = min(low, 0.0)
+    scale = float(np.float32(max(high - low, 1e-12) / 255.0))
+    return scale, int(round(-low / scale))
+
+
+def quantize_weights(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Float weights [out, in] as int8 [out, in] in -`WEIGHT_STEPS`..`WEIGHT_STEPS` and one float32 scale per output unit."""
+    w = w.astype(np.float64)
+    w_scale = np.maximum(np.abs(w).max(axis=1), 1e-12) / WEIGHT_STEPS
+    return np.clip(np.round(w / w_scale[:, None]), -WEIGHT_STEPS, WEIGHT_STEPS).astype(np.int8), w_scale.astype(np.float32)
+
+
+def _quantized_linear(node, weights: dict, scale: float, zero: int) -> tuple[list, list]:
+    """The nodes and constants of y = x @ W.T + b with int8 W (per output unit) and x in uint8 at `scale` around `zero`."""
     from onnx import helper, numpy_helper
 
     p = node.name or node.input[1]
-    w = numpy_helper.to_array(weights[node.input[1]]).astype(np.float64)  # [out, in]
-    w_scale = np.maximum(np.abs(w).max(axis=1), 1e-12) / WEIGHT_STEPS
-    w_q = np.clip(np.round(w / w_scale[:, None]), -WEIGHT_STEPS, WEIGHT_STEPS)
+    w_q, w_scale = quantize_weights(numpy_helper.to_array(weights[node.input[1]]))
     has_bias = len(node.input) > 2 and node.input[2] != ""  # the exporter drops an all-zero bias
-    b = numpy_helper.to_array(weights[node.input[2]]) if has_bias else np.zeros(len(w))
-    if signed:
-        scale, zero = max(abs(low), abs(high), 1e-12) / 127.0, 128
-    else:
-        low = min(low, 0.0)
-        scale = max(high - low, 1e-12) / 255.0
-        zero = int(round(-low / scale))
+    b = numpy_helper.to_array(weights[node.input[2]]) if has_bias else np.zeros(len(w_q))
     constants = {"x_scale": np.array(scale, dtype=np.float32), "x_zero": np.array(zero, dtype=np.uint8),
-                 "w": w_q.astype(np.int8).T.copy(), "w_scale": w_scale.astype(np.float32), "b": b.astype(np.float32)}
+                 "w": w_q.T.copy(), "w_scale": w_scale, "b": b.astype(np.float32)}
     c = {k: f"{p}_{k}" for k in constants}
     nodes = [
         helper.make_node("QuantizeLinear", [node.input[0], c["x_scale"], c["x_zero"]], [f"{p}_x_q"]),
