@@ -230,8 +230,12 @@ def test_a_second_pass_run_scores_a_multichoice_students_hypotheses_in_two_evalu
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert {"scorer", "scorer_round", "scorer_eval"} <= {r.get("type") for r in records}
     # it keeps the states it learned from, for the next run's --states-from
-    kept = next(r["states"] for r in records if r.get("type") == "scorer_round")
-    assert _saved_states(run) == kept > 32
+    round_ = next(r for r in records if r.get("type") == "scorer_round")
+    assert _saved_states(run) == round_["states"] > 32
+    # --scorer-jitter: moved copies of each visited state join them
+    jittered = distill(dataclasses.replace(cfg, name="sj", scorer_jitter=2)).dir
+    moved = next(r for r in map(json.loads, (jittered / "log.jsonl").read_text().splitlines()) if r.get("type") == "scorer_round")
+    assert moved["states"] - round_["states"] == 2 * (round_["states"] - _saved_states(first) - 32)
     export_onnx(run / "last", run / "last.onnx")
     policy = load_policy(run / "last.onnx")
     assert policy.network_evaluations() == 2 and not policy.uses_noise

@@ -34,6 +34,8 @@ class DistillConfig:
                                         "every hypothesis alike plus their mean) instead of one MLP over all of them side by side")
     scorer_stretches: str = option("1", "comma-separated stretches (the first 1) at which the second pass scores each hypothesis: "
                                         "the nearest of all plays at its stretch (training.outcome.stretch)")
+    scorer_jitter: int = option(0, "copies of each state the student visits in a second-pass round, moved by about 3 px and 0.03 rad, "
+                                   "that join its states (labels cost no episodes)")
     scorer_steps: int = option(12_000, "optimizer steps of the second pass (half as many after each of its rounds)")
     scorer_rounds: int = option(2, "rounds of the second pass: the student plays --round-episodes, the outcome model labels its hypotheses there")
     scorer_lr: float = option(1e-3, "AdamW peak learning rate of the second pass (a third of it in its rounds)")
@@ -79,7 +81,7 @@ class DistillConfig:
                      "outcome_chunks", "hypotheses", "top", "scorer_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("teacher_episodes", "rounds", "scorer_rounds"):
+        for name in ("teacher_episodes", "rounds", "scorer_rounds", "scorer_jitter"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.round_seed in RESERVED_SEEDS:

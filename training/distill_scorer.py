@@ -22,6 +22,8 @@ import torch
 __all__ = ["hypothesis_changes", "save_states", "train_scorer"]
 
 LABEL_BATCH = 4096
+JITTER = torch.tensor([3.0, 3.0, 3.0, 3.0, 0.03])
+"""how far `--scorer-jitter`'s copies of a visited state lie from it, one standard deviation (px, px, px, px, rad)"""
 
 
 def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: torch.Generator) -> dict:
@@ -40,7 +42,10 @@ def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: t
         if round_:
             visited, _, scores = decision_pairs(ActingPolicy(student.eval(), 1), cfg.round_episodes, seed)
             seed += cfg.round_episodes
-            new = teacher.policy_state(torch.as_tensor(visited))
+            visited = torch.as_tensor(visited)
+            # moved copies cost labels, not episodes: the pass learns around the states it goes to, not at points
+            moved = [visited + torch.randn(visited.shape, generator=generator) * JITTER for _ in range(cfg.scorer_jitter)]
+            new = teacher.policy_state(torch.cat([visited, *moved]))
             state_n, changes = torch.cat([state_n, new]), torch.cat([changes, hypothesis_changes(student, teacher, new)])
             run.log({"type": "scorer_round", "step": round_, "round": round_, "states": len(state_n), "elapsed_s": run.elapsed_s,
                      **{f"played_{k}": v for k, v in scores.items()}})
