@@ -151,12 +151,7 @@ def test_a_scoring_pass_learns_where_each_hypothesis_leaves_the_block_and_plays_
     changes = torch.randn(len(STATES), 3, 3)
     rows = torch.from_numpy(STATES).repeat_interleave(3, dim=0)
     nearest_ = goal_corner_distance(pose_after(rows, changes.reshape(-1, 3))).reshape(-1, 3).argmin(dim=1)
-    optimizer = torch.optim.Adam(head.scorer.parameters(), lr=1e-2)
-    for _ in range(300):
-        loss = head.scorer_loss(teacher, state_n, chunks_n, changes)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+    _fit_scorer(head, teacher, state_n, chunks_n, changes)
     with torch.no_grad():
         torch.testing.assert_close(head.changes(teacher, state_n, chunks_n), changes, atol=0.25, rtol=0)  # the regret term pulls too
         np.testing.assert_array_equal(head.scores(teacher, state_n, chunks_n).argmin(dim=1).numpy(), nearest_.numpy())
@@ -164,6 +159,16 @@ def test_a_scoring_pass_learns_where_each_hypothesis_leaves_the_block_and_plays_
         np.testing.assert_allclose(head.best_chunk(teacher, state_n, torch.randn(6, 12, 2)).numpy(), want.numpy(), atol=1e-6)
     with pytest.raises(ValueError, match="not stretches"):
         OnePassChooser(encoded, (12, 2), [32], 3, [1.0, 1.5], scorer_dims=[64])
+
+
+def _fit_scorer(head: OnePassChooser, flow, state_n: torch.Tensor, chunks_n: torch.Tensor, changes: torch.Tensor) -> None:
+    """300 Adam steps of the second pass's loss on fixed hypotheses and labels."""
+    optimizer = torch.optim.Adam(head.scorer.parameters(), lr=1e-2)
+    for _ in range(300):
+        loss = head.scorer_loss(flow, state_n, chunks_n, changes)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
 
 
 def test_a_second_pass_with_stretches_learns_the_outcome_of_each_hypothesis_stretched_and_plays_the_nearest() -> None:
@@ -186,12 +191,7 @@ def test_a_second_pass_with_stretches_learns_the_outcome_of_each_hypothesis_stre
         torch.testing.assert_close(labels[:, 3:].reshape(-1, 3), teacher.outcome.model.net(teacher.outcome.model.features(
             state.repeat_interleave(3, dim=0), stretched)))
     nearest_ = head.goal_distances(student, state_n, labels).argmin(dim=1)
-    optimizer = torch.optim.Adam(head.scorer.parameters(), lr=1e-2)
-    for _ in range(300):
-        loss = head.scorer_loss(student, state_n, chunks_n, labels)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+    _fit_scorer(head, student, state_n, chunks_n, labels)
     with torch.no_grad():
         np.testing.assert_array_equal(head.scores(student, state_n, chunks_n).argmin(dim=1).numpy(), nearest_.numpy())
         options = torch.cat([plain.reshape(6, 3, 12, 2), stretched.reshape(6, 3, 12, 2)], dim=1)
