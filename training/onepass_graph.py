@@ -24,7 +24,7 @@ from torch import nn
 from pusht.geometry import GOAL_POSE
 from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import _CORNERS, _CENTER, _SCALE
-from training.onepass import SharedScorer, first_nearest
+from training.onepass import SharedScorer, _stretched, first_nearest
 from training.outcome import _FRAME_SCALE, _POSE_SCALE
 
 __all__ = ["LeanScoredChoice", "lean_graph"]
@@ -101,7 +101,7 @@ class LeanScoredChoice(nn.Module):
         if not self.stretched:
             return chosen
         factor = self.stretches[torch.div(best, self.k, rounding_mode="floor")].reshape(-1, 1, 1)
-        return torch.clamp(agent[:, None] + factor * (chosen - agent[:, None]), ACTION_LOW, ACTION_HIGH)
+        return _stretched(state, chosen, factor)
 
 
     def _changes(self, z: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
