@@ -267,6 +267,71 @@ def test_a_second_pass_run_scores_a_multichoice_students_hypotheses_in_two_evalu
             torch.testing.assert_close(stretched.onepass.scorer.state_dict()[name], tensor)
 
 
+def test_the_teachers_outcome_model_as_the_second_pass_predicts_and_chooses_as_the_model_does(tmp_path: Path) -> None:
+    from training.distill_scorer import hypothesis_changes
+    from training.policies import build_policy
+
+    cfg = DistillConfig(teacher=str(TEACHER), name="m", out_dir=str(tmp_path), student="multichoice", hypotheses=4, fixed_noise=-1,
+                        pairs=32, steps=2, batch_size=8, eval_episodes=1, log_every=1, progress=False, student_hidden_dims="32,32")
+    first = distill(cfg).dir
+    run = distill(dataclasses.replace(cfg, name="o", steps=0, init=str(first / "last"), scorer_outcome=True)).dir
+    student, card = load_checkpoint(run / "last")
+    teacher, teacher_card = load_checkpoint(TEACHER)
+    arch = card["architecture"]
+    assert arch["onepass_scorer_dims"] == teacher_card["architecture"]["outcome_dims"]
+    assert arch["onepass_scorer_shared"] and arch["onepass_scorer_context"] is False and "--scorer-outcome" in card["reproduce"]["distill"]
+    assert {"scorer_eval"} <= {json.loads(line).get("type") for line in (run / "log.jsonl").read_text().splitlines()}
+    state = torch.from_numpy(STATES)
+    state_n = student.policy_state(state)
+    with torch.no_grad():
+        chunks_n = student.onepass(student, state_n)[0]
+        changes = student.onepass.changes(student, state_n, chunks_n)
+        torch.testing.assert_close(changes, hypothesis_changes(student, teacher, state_n), atol=1e-4, rtol=1e-4)
+        # the pass's pick is the outcome model's own among the hypotheses
+        rows, actions = student.onepass.hypothesis_actions(student, state_n, chunks_n)
+        model_pick = goal_corner_distance(teacher.outcome.model(rows, actions)).reshape(len(STATES), 4).argmin(dim=1)
+        torch.testing.assert_close(student.onepass.scores(student, state_n, chunks_n).argmin(dim=1), model_pick)
+    export_onnx(run / "last", run / "last.onnx")  # the lean graph of a pass without context
+    policy = load_policy(run / "last.onnx")
+    assert policy.network_evaluations() == 2
+    np.testing.assert_allclose(policy.act(STATES, np.zeros((6, 12, 2), np.float32)),
+                               load_policy(run / "last").act(STATES, np.zeros((6, 12, 2), np.float32)), atol=1e-3)
+    # with --scorer-top and a ranker, the model itself scores the ranker's best two; only the ranker learns
+    ranked = distill(dataclasses.replace(cfg, name="r", steps=0, init=str(first / "last"), scorer_outcome=True, scorer_top=2,
+                                         ranker_dims="16", scorer_steps=2, scorer_rounds=1, round_episodes=1, states_from=str(first))).dir
+    ranker, ranker_card = load_checkpoint(ranked / "last")
+    assert ranker_card["architecture"]["onepass_scorer_top"] == 2 and ranker_card["architecture"]["onepass_ranker_dims"] == [16]
+    with torch.no_grad():
+        ranked_n = ranker.policy_state(state)
+        torch.testing.assert_close(ranker.onepass.changes(ranker, ranked_n, ranker.onepass(ranker, ranked_n)[0]),
+                                   hypothesis_changes(ranker, teacher, ranked_n), atol=1e-4, rtol=1e-4)
+    export_onnx(ranked / "last", ranked / "last.onnx")
+    np.testing.assert_allclose(load_policy(ranked / "last.onnx").act(STATES, np.zeros((6, 12, 2), np.float32)),
+                               load_policy(ranked / "last").act(STATES, np.zeros((6, 12, 2), np.float32)), atol=1e-3)
+    with pytest.raises(ValueError, match="give --scorer-top too"):
+        DistillConfig(student="multichoice", steps=0, init="x", scorer_outcome=True, ranker_dims="16")
+    with pytest.raises(ValueError, match="each hypothesis alone"):
+        DistillConfig(student="multichoice", steps=0, init="x", scorer_dims="16", scorer_top=2)
+    # narrower, it starts from the model's most active units and learns on
+    pruned = distill(dataclasses.replace(cfg, name="p", steps=0, init=str(first / "last"), scorer_outcome=True,
+                                         scorer_dims="64,64,64,64", scorer_steps=2, scorer_rounds=0, states_from=str(first))).dir
+    assert load_card(pruned / "last")["architecture"]["onepass_scorer_dims"] == [64, 64, 64, 64]
+    assert "scorer" in {json.loads(line).get("type") for line in (pruned / "log.jsonl").read_text().splitlines()}
+    with pytest.raises(ValueError, match="of as many layers, none wider"):
+        distill(dataclasses.replace(cfg, name="w", steps=0, init=str(first / "last"), scorer_outcome=True, scorer_dims="64,64"))
+    with pytest.raises(ValueError, match="give no --scorer-shared"):
+        DistillConfig(student="multichoice", steps=0, init="x", scorer_outcome=True, scorer_shared=True, scorer_dims="16")
+    with pytest.raises(ValueError, match="--init CARD and --steps 0"):
+        DistillConfig(student="multichoice", scorer_outcome=True)
+    with pytest.raises(ValueError, match="give --scorer-shared too"):
+        DistillConfig(student="multichoice", steps=0, init="x", scorer_dims="16", scorer_context=False)
+    with pytest.raises(ValueError, match="it needs onepass_scorer_shared"):
+        build_policy("flow", **{**student.architecture, "onepass_scorer_shared": False})
+    with pytest.raises(ValueError, match="a second pass needs a teacher with an outcome chooser"):
+        distill(dataclasses.replace(cfg, name="x", teacher=str(REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"),
+                                    steps=0, init=str(first / "last"), scorer_outcome=True))
+
+
 def test_a_shared_second_pass_treats_every_hypothesis_alike_and_exports(tmp_path: Path) -> None:
     from training.checkpoint import save_checkpoint
     from training.distill import student_of

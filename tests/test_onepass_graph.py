@@ -21,13 +21,13 @@ REPO = Path(__file__).resolve().parent.parent
 TEACHER = REPO / "records" / "flow-outcome16-stretch" / "last"
 
 
-def _scoring_student(tmp_path: Path, stretches: tuple[float, ...] = (1.0,), shared: bool = False) -> Path:
+def _scoring_student(tmp_path: Path, stretches: tuple[float, ...] = (1.0,), shared: bool = False, context: bool = True) -> Path:
     """A random scoring student (4 hypotheses, 2 x 32 generator and scorer, scoring each at `stretches`; `shared`: a set
-    network) saved as a checkpoint; returns its stem."""
+    network, with or without `context`) saved as a checkpoint; returns its stem."""
     torch.manual_seed(0)
     teacher, _ = load_checkpoint(TEACHER)
     student = student_of(teacher, 0.0, onepass_dims="32,32", hypotheses=4, scorer_dims="32,32", scorer_stretches=stretches,
-                         scorer_shared=shared)
+                         scorer_shared=shared, scorer_context=context)
     with torch.no_grad():  # outputs of the order of a trained head's, so the hypotheses differ by tens of pixels
         for p in student.onepass.parameters():
             p.mul_(3.0)
@@ -41,9 +41,10 @@ def _states(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     return low + (high - low) * torch.rand(n, 5, generator=gen), torch.randn(n, 12, 2, generator=gen)
 
 
-@pytest.mark.parametrize("stretches,shared", [((1.0,), False), ((1.0, 1.3, 1.6), False), ((1.0,), True), ((1.0, 1.3, 1.6), True)])
-def test_the_lean_graph_plays_the_modules_choice(tmp_path: Path, stretches: tuple[float, ...], shared: bool) -> None:
-    acting = load_acting_policy(_scoring_student(tmp_path, stretches, shared), num_steps=1).eval()
+@pytest.mark.parametrize("stretches,shared,context", [((1.0,), False, True), ((1.0, 1.3, 1.6), False, True), ((1.0,), True, True),
+                                                      ((1.0, 1.3, 1.6), True, True), ((1.0,), True, False)])
+def test_the_lean_graph_plays_the_modules_choice(tmp_path: Path, stretches: tuple[float, ...], shared: bool, context: bool) -> None:
+    acting = load_acting_policy(_scoring_student(tmp_path, stretches, shared, context), num_steps=1).eval()
     lean = LeanScoredChoice(acting.policy).eval()
     state, noise = _states(2000, seed=1)
     with torch.no_grad():

@@ -32,7 +32,7 @@ def plot_learning_curve(records: list[dict[str, Any]], path: str | Path) -> None
         ax_eval.set_title(f"evaluation ({evals[0].get('episodes', len(first))} episodes, seeds {first[0]}..{first[-1]})")
     else:
         ax_eval.set_title("evaluation (none yet)")
-    last_step = max([r["step"] for r in records], default=1)
+    last_step = max([r["step"] for r in records] + [1])  # a run of 0 steps (a second pass that learns nothing) still has an axis
     ax_eval.set(xlabel="step", ylim=(0, 1), xlim=(0, last_step * 1.02))
     ax_eval.grid(alpha=0.3)
     fig.tight_layout()

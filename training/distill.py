@@ -44,6 +44,8 @@ RESUMABLE_CHANGES = ("progress", "threads")
 CHOOSER_KEYS = ("outcome_dims", "outcome_candidates", "outcome_stretches")
 """Architecture keys of an outcome chooser, which a flow student does not take (it samples one chunk); a one-pass student
 keeps the candidates and stretches."""
+OUTCOME_PRUNE_STATES = 4096
+"""demonstration states on which --scorer-outcome ranks the outcome model's units, where the second pass is narrower"""
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: 0 when finished, 2 on a bad setting."""
     from training.run import RunError
@@ -116,13 +118,18 @@ def distill(cfg: DistillConfig):
             finished = round_ == cfg.rounds
             save(str(run.dir / ("last" if finished else f"round{round_}")), student, steps=(round_ + 1) * cfg.steps,
                  wall_time_s=run.elapsed_s, evaluation=evaluation, finished=finished)
-        if cfg.scorer_dims:  # the hypotheses of a trained student (--init) stay; only the second pass learns
+        if cfg.scorer_dims or cfg.ranker_dims:  # the hypotheses of a trained student (--init) stay; the second pass or the ranker learns
             from training.distill_scorer import train_scorer
 
             where = student.policy_state(torch.as_tensor(states[rows]))
             if cfg.states_from:  # states of another run's pairs: where its students went
                 where = torch.cat([where, pairs.saved_states(Path(cfg.states_from) / PAIRS_FILE)])
             evaluation = train_scorer(student, teacher, where, run, cfg, generator)
+        elif cfg.scorer_outcome:  # the outcome model itself chooses among the trained student's hypotheses: nothing to learn
+            summary = evaluate_policy(ActingPolicy(student.eval(), 1), episodes=cfg.eval_episodes, seed=cfg.eval_seed)
+            evaluation = {"scorer_round": 0, **{k: v for k, v in summary.scores().items() if k != "wall_time_s"}}
+            run.log({"type": "scorer_eval", "step": 0, **evaluation})
+        if cfg.second_pass:
             save(str(run.dir / "last"), student, steps=0, wall_time_s=run.elapsed_s, evaluation=evaluation, finished=True)
         plot_learning_curve(run.records, run.dir / "learning_curve.png")
         run.finish(total)
@@ -143,30 +150,43 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
     if card.get("sampler_steps") not in (None, cfg.teacher_steps):
         raise ValueError(f"{cfg.teacher} was itself distilled to sample in {card['sampler_steps']} steps; "
                          f"give --teacher-steps {card['sampler_steps']} or distil its own teacher ({card.get('teacher')})")
-    if (cfg.outcome_weight or cfg.student == "one-pass") and teacher.outcome is None:
-        raise ValueError(f"{'--outcome-weight' if cfg.outcome_weight else 'a one-pass student'} needs a teacher with an outcome "
-                         f"chooser; {cfg.teacher} has none")
+    needs = "--outcome-weight" if cfg.outcome_weight else "a one-pass student" if cfg.student == "one-pass" else "a second pass"
+    if (cfg.outcome_weight or cfg.student == "one-pass" or cfg.second_pass) and teacher.outcome is None:
+        raise ValueError(f"{needs} needs a teacher with an outcome chooser; {cfg.teacher} has none")
     teacher.eval().requires_grad_(False)
     noise_scale = 0.0 if cfg.fixed_noise >= 0 else None
     if cfg.student == "one-pass":
         student = student_of(teacher, noise_scale, onepass_dims=cfg.student_hidden_dims or DEFAULT_ONEPASS_DIMS)
     elif cfg.student == "multichoice":  # deterministic whatever the labels' noise: it never reads its start noise
+        outcome = cfg.scorer_outcome  # the outcome model's widths unless narrower ones are given, each hypothesis alone
+        scorer_dims = cfg.scorer_dims or ",".join(map(str, teacher.architecture["outcome_dims"])) if outcome else cfg.scorer_dims
         student = student_of(teacher, 0.0, onepass_dims=cfg.student_hidden_dims or DEFAULT_MULTICHOICE_DIMS, hypotheses=cfg.hypotheses,
-                             scorer_dims=cfg.scorer_dims, scorer_shared=cfg.scorer_shared, scorer_stretches=cfg.scored_stretches())
+                             scorer_dims=scorer_dims, scorer_shared=cfg.scorer_shared or outcome, scorer_stretches=cfg.scored_stretches(),
+                             scorer_context=cfg.scorer_context and not outcome, scorer_top=cfg.scorer_top, ranker_dims=cfg.ranker_dims)
     else:
         student = student_of(teacher, noise_scale, hidden_dims=cfg.student_hidden_dims)
     if cfg.init:
         start, start_card = load_checkpoint(cfg.init)
         # with --scorer-dims the hypotheses come from --init and the second pass is trained: its own if it has this one
-        second = ("onepass_scorer_dims", "onepass_scorer_shared", "onepass_scorer_stretches") if cfg.scorer_dims else ()
+        second = (("onepass_scorer_dims", "onepass_scorer_shared", "onepass_scorer_context", "onepass_scorer_stretches", "onepass_scorer_top",
+                   "onepass_ranker_dims") if cfg.second_pass else ())
         if start_card.get("teacher") != cfg.teacher or _without(start.architecture, second) != _without(student.architecture, second):
             raise ValueError(f"--init {cfg.init} is not a student of {cfg.teacher} with this run's architecture "
                              f"(its teacher: {start_card.get('teacher')})")
-        if cfg.scorer_dims:  # a second pass of the same widths keeps its layers (but the last, if it scores other stretches)
-            same = all(start.architecture.get(k) == student.architecture.get(k) for k in second[:2])
+        if cfg.second_pass:  # a second pass (a ranker) of the same widths keeps its layers (but the last, if it scores other stretches)
+            same = {"onepass.scorer.": all(start.architecture.get(k) == student.architecture.get(k) for k in second[:3]),
+                    "onepass.ranker.": start.architecture.get(second[5]) == student.architecture.get(second[5])}
             own = student.state_dict()
-            kept = {k: v for k, v in start.state_dict().items() if not k.startswith("onepass.scorer.") or (same and own[k].shape == v.shape)}
+            kept = {k: v for k, v in start.state_dict().items() if k in own and (
+                all(not k.startswith(part) or (alike and own[k].shape == v.shape) for part, alike in same.items()))}
             student.load_state_dict({**student.state_dict(), **kept})
+            if cfg.scorer_outcome:  # pruned where narrower, by its units' activity on the hypotheses at demonstration states
+                from training.data import load_replay
+                from training.distill_scorer import outcome_scorer
+
+                demonstrations = load_replay(cfg.data).states
+                picked = demonstrations[:: max(1, len(demonstrations) // OUTCOME_PRUNE_STATES)]
+                outcome_scorer(student, teacher, student.policy_state(torch.as_tensor(picked)))
         else:
             student = start
     return teacher, student
@@ -194,12 +214,14 @@ def outcome_term(student, teacher, state_n: torch.Tensor, chunk_n: torch.Tensor,
 
 def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidden_dims: str = "", onepass_dims: str = "",
                hypotheses: int | None = None, scorer_dims: str = "", scorer_shared: bool = False,
-               scorer_stretches: Sequence[float] = (1.0,)) -> torch.nn.Module:
+               scorer_stretches: Sequence[float] = (1.0,), scorer_context: bool = True, scorer_top: int = 0,
+               ranker_dims: str = "") -> torch.nn.Module:
     """A plain flow of the teacher's architecture and normalization (and `noise_scale` if given) with its flow's weights,
     or with comma-separated `hidden_dims` a fresh network of those widths; an outcome chooser's own parts stay behind.
     With comma-separated `onepass_dims`: the teacher's flow with a fresh one-pass chooser of those widths over its
     candidates and stretches (`training.onepass`), or with `hypotheses` a multiple-choice head of that many unstretched chunks
-    (and with `scorer_dims` its second pass, scoring each at `scorer_stretches`)."""
+    (and with `scorer_dims` its second pass, scoring each at `scorer_stretches`, shared with or without `scorer_context`,
+    all of them or the `scorer_top` best-scored by the first pass, or by a ranker of `ranker_dims` on its last hidden layer)."""
     from training.policies import build_policy
 
     dropped = ("outcome_dims",) if onepass_dims else CHOOSER_KEYS
@@ -216,6 +238,11 @@ def student_of(teacher: torch.nn.Module, noise_scale: float | None = None, hidde
         arch["onepass_scorer_dims"] = _widths(scorer_dims)
         if scorer_shared:
             arch["onepass_scorer_shared"] = True
+            arch["onepass_scorer_context"] = scorer_context
+        if scorer_top:
+            arch["onepass_scorer_top"] = scorer_top
+        if ranker_dims:
+            arch["onepass_ranker_dims"] = _widths(ranker_dims)
         if list(scorer_stretches) != [1.0]:
             arch["onepass_scorer_stretches"] = [float(s) for s in scorer_stretches]
     student = build_policy("flow", **arch)

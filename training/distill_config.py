@@ -34,6 +34,15 @@ class DistillConfig:
                                         "every hypothesis alike plus their mean) instead of one MLP over all of them side by side")
     scorer_stretches: str = option("1", "comma-separated stretches (the first 1) at which the second pass scores each hypothesis: "
                                         "the nearest of all plays at its stretch (training.outcome.stretch)")
+    scorer_context: bool = option(True, "each layer of a shared second pass adds a map of the hypotheses' mean; without it "
+                                        "each hypothesis is scored alone, as the outcome model scores a chunk")
+    scorer_outcome: bool = option(False, "the second pass starts as the teacher's outcome model, each hypothesis scored alone: "
+                                         "the model itself (nothing to train: it is what the pass learns), or with --scorer-dims "
+                                         "(as many layers, narrower) its most active units, trained on")
+    scorer_top: int = option(0, "the second pass scores only the first pass's this many best-scored hypotheses, each alone "
+                                "(with --scorer-outcome or --no-scorer-context; 0: all); it learns on all of them")
+    ranker_dims: str = option("", "comma-separated widths of a ranker: an MLP on the first pass's last hidden layer whose K scores "
+                                  "pick the --scorer-top hypotheses the second pass sees; it learns where the outcome model's pick lies")
     scorer_jitter: int = option(0, "copies of each state the student visits in a second-pass round, moved by about 3 px and 0.03 rad, "
                                    "that join its states (labels cost no episodes)")
     scorer_steps: int = option(12_000, "optimizer steps of the second pass (half as many after each of its rounds)")
@@ -81,7 +90,7 @@ class DistillConfig:
                      "outcome_chunks", "hypotheses", "top", "scorer_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("teacher_episodes", "rounds", "scorer_rounds", "scorer_jitter"):
+        for name in ("teacher_episodes", "rounds", "scorer_rounds", "scorer_jitter", "scorer_top"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.round_seed in RESERVED_SEEDS:
@@ -101,22 +110,40 @@ class DistillConfig:
                              "(and no --outcome-weight: it learns the chooser's own scores)")
         if self.scored_stretches() != [1.0] and not self.scorer_dims:
             raise ValueError("--scorer-stretches are what a second pass scores: give --scorer-dims too")
+        if not self.scorer_context and not self.scorer_shared:
+            raise ValueError("--no-scorer-context shapes a shared second pass: give --scorer-shared too")
+        if self.scorer_top and not (self.scorer_outcome or (self.scorer_shared and not self.scorer_context)):
+            raise ValueError("--scorer-top has the second pass score each hypothesis alone: give --scorer-outcome, "
+                             "or --scorer-shared --no-scorer-context")
+        if self.ranker_dims and not self.scorer_top:
+            raise ValueError("--ranker-dims picks the hypotheses the second pass scores: give --scorer-top too")
+        if self.ranker_dims and not all(w.strip().isdigit() and int(w) > 0 for w in self.ranker_dims.split(",")):
+            raise ValueError(f"ranker_dims must be comma-separated positive widths, got {self.ranker_dims!r}")
         if self.scorer_shared and not self.scorer_dims:
             raise ValueError("--scorer-shared shapes the second pass: give --scorer-dims too")
         if (self.top > 1 or self.scorer_dims) and self.student != "multichoice":
             raise ValueError("--top and --scorer-dims belong to a multichoice student: give --student multichoice")
         if self.scorer_dims and not all(w.strip().isdigit() and int(w) > 0 for w in self.scorer_dims.split(",")):
             raise ValueError(f"scorer_dims must be comma-separated positive widths, got {self.scorer_dims!r}")
-        if self.steps < 1 and not self.scorer_dims:
+        if self.scorer_outcome and (self.scorer_shared or not self.scorer_context or self.scored_stretches() != [1.0]):
+            raise ValueError("--scorer-outcome shapes the second pass as the outcome model (shared, no context) and scores plain "
+                             "hypotheses: give no --scorer-shared, --no-scorer-context or --scorer-stretches")
+        if self.steps < 1 and not self.second_pass:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
-        if self.scorer_dims and (self.steps or not self.init):
-            raise ValueError("--scorer-dims trains the second pass of a trained multichoice student: give --init CARD and --steps 0")
+        if self.second_pass and (self.steps or not self.init or self.student != "multichoice"):
+            raise ValueError("--scorer-dims and --scorer-outcome give a trained multichoice student its second pass: "
+                             "give --student multichoice, --init CARD and --steps 0")
         if not self.scorer_lr > 0:
             raise ValueError(f"scorer_lr must be > 0, got {self.scorer_lr}")
         if not 0 <= self.relax < 1:
             raise ValueError(f"relax must be in [0, 1), got {self.relax}")
         if not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
+
+    @property
+    def second_pass(self) -> bool:
+        """Whether the run gives a trained multichoice student a second pass (learned, or the outcome model's)."""
+        return bool(self.scorer_dims) or self.scorer_outcome
 
     def scored_stretches(self) -> list[float]:
         """`scorer_stretches` as numbers (ValueError unless in (0, 4] and the first 1)."""

@@ -19,7 +19,7 @@ import time
 import numpy as np
 import torch
 
-__all__ = ["hypothesis_changes", "save_states", "train_scorer"]
+__all__ = ["hypothesis_changes", "outcome_scorer", "save_states", "train_scorer"]
 
 LABEL_BATCH = 4096
 JITTER = torch.tensor([3.0, 3.0, 3.0, 3.0, 0.03])
@@ -35,7 +35,9 @@ def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: t
 
     head = student.onepass
     changes = hypothesis_changes(student, teacher, state_n)
-    optimizer = torch.optim.AdamW(head.scorer.parameters(), lr=cfg.scorer_lr, weight_decay=0.0)
+    # what learns: the second pass (unless it is the outcome model itself), the ranker picking what it sees (if any)
+    learned = [m for m in (head.scorer if cfg.scorer_dims else None, head.ranker) if m is not None]
+    optimizer = torch.optim.AdamW([p for m in learned for p in m.parameters()], lr=cfg.scorer_lr, weight_decay=0.0)
     seed = cfg.round_seed + cfg.teacher_episodes + cfg.rounds * cfg.round_episodes  # after the generator's episodes
     evaluation: dict = {}
     for round_ in range(cfg.scorer_rounds + 1):
@@ -52,12 +54,76 @@ def train_scorer(student, teacher, state_n: torch.Tensor, run, cfg, generator: t
             save_states(run.dir / PAIRS_FILE, state_n, cfg.teacher)
         steps = cfg.scorer_steps if round_ == 0 else cfg.scorer_steps // 2
         lr = cfg.scorer_lr if round_ == 0 else cfg.scorer_lr / 3
-        _fit(student, state_n, changes, optimizer, steps, lr, run, cfg, generator, round_)
+        _fit(student, learned, state_n, changes, optimizer, steps, lr, run, cfg, generator, round_)
         student.eval()
         summary = evaluate_policy(ActingPolicy(student, 1), episodes=cfg.eval_episodes, seed=cfg.eval_seed)
         evaluation = {"scorer_round": round_, **{k: v for k, v in summary.scores().items() if k != "wall_time_s"}}
         run.log({"type": "scorer_eval", "step": round_, **evaluation})
     return evaluation
+
+
+@torch.no_grad()
+def outcome_scorer(student, teacher, state_n: torch.Tensor) -> None:
+    """Make the student's second pass (shared, without context) the teacher's outcome model: at the model's widths the
+    model itself, what the pass would learn, exactly; narrower (as many layers), each layer's units that matter most on the
+    student's hypotheses at the inputs `state_n` [N, S'] (mean activity times outgoing weight), a start to learn from."""
+    from torch import nn
+
+    from training.onepass import SharedScorer
+
+    scorer, model = student.onepass.scorer, teacher.outcome.model
+    layers = [m for m in model.net if isinstance(m, nn.Linear)]
+    full = [m.out_features for m in layers[:-1]]
+    widths = [scorer.state.out_features, *(m.out_features for m in scorer.hidden)] if isinstance(scorer, SharedScorer) else []
+    if not widths or scorer.context is not None or len(widths) != len(full) or any(w > f for w, f in zip(widths, full)):
+        raise ValueError(f"the teacher's outcome model (widths {full}) starts a shared second pass without context of as many "
+                         f"layers, none wider; got {widths or 'another pass'}")
+    on_state, bias = _first_layer_on_features(student, model, layers[0])
+    keep = [torch.arange(f) for f in full] if widths == full else _most_active(student, model, layers, widths, state_n)
+    scorer.state.weight.copy_(on_state[keep[0]])
+    scorer.state.bias.copy_(bias[keep[0]])
+    scorer.chunk.weight.copy_(layers[0].weight[keep[0]][:, _TARGETS])
+    for mine, theirs, rows, columns in zip(scorer.hidden, layers[1:-1], keep[1:], keep[:-1]):
+        mine.weight.copy_(theirs.weight[rows][:, columns])
+        mine.bias.copy_(theirs.bias[rows])
+    scorer.out.weight.copy_(layers[-1].weight[:, keep[-1]])
+    scorer.out.bias.copy_(layers[-1].bias)
+
+
+def _first_layer_on_features(student, model, first) -> tuple[torch.Tensor, torch.Tensor]:
+    """The outcome model's first layer's part on the state ([W, 6] and its bias) as weights [W, F] on the second pass's own
+    features: both are functions of the same five numbers, the model's affine in the pass's (solved on random states,
+    checked to rounding)."""
+    from training.onepass import head_features
+
+    normalizer = student.normalizer
+    noise = torch.randn(1024, len(normalizer.state_mean), generator=torch.Generator().manual_seed(0))
+    state = normalizer.state_mean + normalizer.state_std * noise
+    ours = torch.cat([head_features(student, student.policy_state(state)), torch.ones(len(state), 1)], dim=1).double()
+    theirs = model.features(state, torch.zeros(len(state), *student.onepass.chunk_shape))[:, _STATE].double()
+    solution = torch.linalg.pinv(ours) @ theirs  # [F + 1, 6]; least squares, rank-deficient (the corners follow from the pose)
+    if (ours @ solution - theirs).abs().max() > 1e-6:
+        raise ValueError("the second pass's features do not carry the outcome model's view of the state")
+    weight = first.weight[:, _STATE].double()
+    return (weight @ solution[:-1].T).float(), (first.bias.double() + weight @ solution[-1]).float()
+
+
+def _most_active(student, model, layers, widths: list[int], state_n: torch.Tensor) -> list[torch.Tensor]:
+    """For each hidden layer of the outcome model, the indices (in order) of its `widths` units of most mean activity times
+    outgoing weight on the student's hypotheses at the inputs `state_n`."""
+    from torch.nn import functional as F
+
+    rows, actions = student.onepass.hypothesis_actions(student, state_n, student.onepass(student, state_n)[0])
+    h, keep = model.features(rows, actions), []
+    for layer, after, width in zip(layers, layers[1:], widths):
+        h = F.silu(layer(h))
+        keep.append((h.abs().mean(dim=0) * after.weight.norm(dim=0)).topk(width).indices.sort().values)
+    return keep
+
+
+_TARGETS = slice(2, -4)
+"""the columns of `OutcomeModel.features` that hold the chunk's targets; the rest (`_STATE`) see the state"""
+_STATE = [0, 1, -4, -3, -2, -1]
 
 
 def save_states(path, state_n: torch.Tensor, teacher: str) -> None:
@@ -76,24 +142,29 @@ def hypothesis_changes(student, teacher, state_n: torch.Tensor) -> torch.Tensor:
     for i in range(0, len(state_n), LABEL_BATCH // len(head.scorer_stretches)):
         rows_n = state_n[i : i + LABEL_BATCH // len(head.scorer_stretches)]
         state, actions = head.scored_actions(student, rows_n, head(student, rows_n)[0])
-        out.append(model.net(model.features(state, actions)).reshape(len(rows_n), head.scored, 3))
+        out.append(model.net(model.features(state, actions)).reshape(len(rows_n), -1, 3))  # all K, even where acting scores the top
     return torch.cat(out)
 
 
-def _fit(student, state_n, changes, optimizer, steps: int, lr: float, run, cfg, generator: torch.Generator, round_: int) -> None:
-    """`steps` optimizer steps of `OnePassChooser.scorer_loss` on random batches (cosine from `lr`), logged as "scorer" records."""
+def _fit(student, learned: list, state_n, changes, optimizer, steps: int, lr: float, run, cfg, generator: torch.Generator,
+         round_: int) -> None:
+    """`steps` optimizer steps of the `learned` parts' losses (`OnePassChooser.scorer_loss`, `ranker_loss`) on random batches
+    (cosine from `lr`), logged as "scorer" records."""
     from tqdm import tqdm
 
     head = student.onepass
-    head.scorer.train()
+    for module in learned:
+        module.train()
     running, start = 0.0, time.perf_counter()
     for step in tqdm(range(1, steps + 1), desc=f"scorer {round_}", disable=not cfg.progress, file=sys.stderr):
         for group in optimizer.param_groups:
             group["lr"] = lr * 0.5 * (1 + np.cos(np.pi * (step - 1) / steps))
         rows = torch.randint(0, len(state_n), (cfg.batch_size,), generator=generator)
-        with torch.no_grad():
-            chunks_n, _ = head(student, state_n[rows])
-        loss = head.scorer_loss(student, state_n[rows], chunks_n, changes[rows])
+        loss = head.ranker_loss(student, state_n[rows], changes[rows]) if head.ranker in learned else 0.0
+        if head.scorer in learned:
+            with torch.no_grad():
+                chunks_n, _ = head(student, state_n[rows])
+            loss = loss + head.scorer_loss(student, state_n[rows], chunks_n, changes[rows])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()

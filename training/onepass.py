@@ -33,7 +33,8 @@ from training.features import KEYPOINT_FEATURES, tee_keypoints
 from training.networks import silu_mlp
 from training.outcome import TIE_MARGIN, agent_in_block_frame, goal_corner_distance, pose_after, stretch, targets_in_block_frame
 
-__all__ = ["CHOICE_WEIGHT", "EXTRA_FEATURES", "OnePassChooser", "first_nearest", "head_features", "score_target", "winner_takes_all"]
+__all__ = ["CHOICE_WEIGHT", "EXTRA_FEATURES", "OnePassChooser", "first_nearest", "gather_hypotheses", "head_features", "score_target",
+           "winner_takes_all"]
 
 EXTRA_FEATURES = KEYPOINT_FEATURES + 2
 """what `head_features` adds to the flow's encoded state: the tee's corners and the agent in the block's frame"""
@@ -52,7 +53,8 @@ class OnePassChooser(nn.Module):
 
     def __init__(self, encoded_dim: int, chunk_shape: tuple[int, int], hidden_dims: Sequence[int], candidates: int,
                  stretches: Sequence[float], scorer_dims: Sequence[int] | None = None, scorer_shared: bool = False,
-                 scorer_stretches: Sequence[float] = (1.0,)) -> None:
+                 scorer_stretches: Sequence[float] = (1.0,), scorer_context: bool = True, scorer_top: int | None = None,
+                 ranker_dims: Sequence[int] | None = None) -> None:
         super().__init__()
         self.chunk_shape = tuple(chunk_shape)
         self.candidates = int(candidates)
@@ -60,8 +62,10 @@ class OnePassChooser(nn.Module):
         self.choices = self.candidates * len(self.stretches)
         self.chunk_dim = self.chunk_shape[0] * self.chunk_shape[1]
         self.scorer_stretches = tuple(float(s) for s in scorer_stretches)
-        self.scored = self.candidates * len(self.scorer_stretches)
-        """how many (hypothesis, stretch) choices the second pass scores: the K hypotheses at each stretch in turn"""
+        self.scorer_top = scorer_top
+        """the second pass scores only the first pass's this many best-scored hypotheses (None: all K)"""
+        self.scored = (scorer_top or self.candidates) * len(self.scorer_stretches)
+        """how many (hypothesis, stretch) choices the second pass scores: the K (or top) hypotheses at each stretch in turn"""
         self.net = silu_mlp(encoded_dim + EXTRA_FEATURES, hidden_dims, self.candidates * self.chunk_dim + self.choices)
         # One network pass over the K hypotheses: a plain MLP over them side by side, or with `scorer_shared` a set network
         # whose layers they share (`SharedScorer`).
@@ -73,8 +77,11 @@ class OnePassChooser(nn.Module):
             if self.stretches != (1.0,):
                 raise ValueError(f"a scoring pass scores plain hypotheses, not stretches {list(self.stretches)}")
             features = encoded_dim + EXTRA_FEATURES
-            self.scorer = (SharedScorer(features, self.chunk_dim, scorer_dims, 3 * len(self.scorer_stretches)) if scorer_shared
+            self.scorer = (SharedScorer(features, self.chunk_dim, scorer_dims, 3 * len(self.scorer_stretches), scorer_context) if scorer_shared
                            else silu_mlp(features + self.candidates * self.chunk_dim, scorer_dims, self.scored * 3))
+        # With `scorer_top` the first pass's K scores pick which hypotheses the second pass sees: its own score rows, or a
+        # small MLP on its last hidden layer (`ranker_dims`) that learns where the outcome model's pick lies (`ranker_loss`).
+        self.ranker = silu_mlp(hidden_dims[-1], ranker_dims, self.candidates) if ranker_dims else None
 
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
     def forward(self, flow: nn.Module, state_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -101,14 +108,15 @@ class OnePassChooser(nn.Module):
         features = head_features(flow, state_n) if features is None else features
         rows, actions = self.hypothesis_actions(flow, state_n, chunks_n)
         frame = targets_in_block_frame(rows, actions)
+        k, stretches = chunks_n.shape[1], len(self.scorer_stretches)
         if isinstance(self.scorer, SharedScorer):  # [B, K, S * 3] -> the K at each stretch in turn
-            out = self.scorer(features, frame.reshape(-1, self.candidates, self.chunk_dim))
-            return out.reshape(-1, self.candidates, len(self.scorer_stretches), 3).transpose(1, 2).reshape(-1, self.scored, 3)
-        return self.scorer(torch.cat([features, frame.reshape(-1, self.candidates * self.chunk_dim)], dim=1)).reshape(-1, self.scored, 3)
+            out = self.scorer(features, frame.reshape(-1, k, self.chunk_dim))
+            return out.reshape(-1, k, stretches, 3).transpose(1, 2).reshape(-1, k * stretches, 3)
+        return self.scorer(torch.cat([features, frame.reshape(-1, k * self.chunk_dim)], dim=1)).reshape(-1, k * stretches, 3)
 
     def hypothesis_actions(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Each hypothesis [B, K, H, A] (normalized) as env-unit rows: its state [B * K, S] and clipped actions [B * K, H, A]."""
-        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.candidates, dim=0)
+        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(chunks_n.shape[1], dim=0)
         return rows, torch.clamp(flow.normalizer.actions(rows, chunks_n.reshape(-1, *self.chunk_shape)), ACTION_LOW, ACTION_HIGH)
 
     def scored_actions(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -125,8 +133,8 @@ class OnePassChooser(nn.Module):
     def goal_distances(self, flow: nn.Module, state_n: torch.Tensor, changes: torch.Tensor) -> torch.Tensor:
         """[B, K * S]: the goal distances (`goal_corner_distance`) after the K hypotheses at each scored stretch move the block by
         `changes` [B, K * S, 3] (the outcome model's units) from the flow's inputs `state_n`."""
-        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(self.scored, dim=0)
-        return goal_corner_distance(pose_after(rows, changes.reshape(-1, 3))).reshape(-1, self.scored)
+        rows = flow.normalizer.env_state(state_n[:, : flow.state_dim]).repeat_interleave(changes.shape[1], dim=0)
+        return goal_corner_distance(pose_after(rows, changes.reshape(-1, 3))).reshape(-1, changes.shape[1])
 
     def _distances(self, flow: nn.Module, state_n: torch.Tensor, chunks_n: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
         """[B, K * S]: the goal distances after the hypotheses at each scored stretch, by the second pass."""
@@ -140,6 +148,14 @@ class OnePassChooser(nn.Module):
         scores, target = (score_target(self.goal_distances(flow, state_n, c)) for c in (predicted, changes))
         regret = target - target.min(dim=1, keepdim=True).values
         return F.mse_loss(predicted, changes) + (torch.softmax(-scores / REGRET_TEMPERATURE, dim=1) * regret).sum(dim=1).mean()
+
+    def ranker_loss(self, flow: nn.Module, state_n: torch.Tensor, changes: torch.Tensor) -> torch.Tensor:
+        """The ranker's listwise cross-entropy: its softmax over the K hypotheses against the outcome model's, whose `changes`
+        [B, K, 3] (its network's output) rank them by goal distance (at `REGRET_TEMPERATURE`: near ties share the mass)."""
+        target = score_target(self.goal_distances(flow, state_n, changes))
+        want = torch.softmax(-(target - target.min(dim=1, keepdim=True).values) / REGRET_TEMPERATURE, dim=1)
+        scores = self.ranker(self.net[:-1](head_features(flow, state_n)))
+        return -(want * torch.log_softmax(-scores, dim=1)).sum(dim=1).mean()
 
     def loss(self, flow: nn.Module, state_n: torch.Tensor, candidates: torch.Tensor, distances: torch.Tensor) -> torch.Tensor:
         """Mean squared error of the candidates [B, K, H, A] (normalized) plus that of the scores against `score_target` of the
@@ -166,7 +182,11 @@ class OnePassChooser(nn.Module):
             best = (scores + 0.0 * noise.flatten(1)[:, :1]).argmin(dim=1)
         else:  # the features once for both passes, and the distances themselves: their argmin is the scores'
             features = head_features(flow, state_n)
-            chunks_n, _ = self._split(self.net(features))
+            hidden = self.net[:-1](features)
+            chunks_n, first = self._split(self.net[-1](hidden))
+            if self.scorer_top:  # the second pass sees only the first pass's best-scored (in order)
+                first = first if self.ranker is None else self.ranker(hidden)
+                chunks_n = gather_hypotheses(chunks_n, torch.topk(first, self.scorer_top, dim=1, largest=False).indices)
             stretches = self.scorer_stretches
             best = first_nearest(self._distances(flow, state_n, chunks_n, features) + 0.0 * noise.flatten(1)[:, :1])
         index = torch.remainder(best, self.candidates).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
@@ -184,22 +204,29 @@ class OnePassChooser(nn.Module):
 
 class SharedScorer(nn.Module):
     """A second pass whose layers the K hypotheses share (a set network, one pass over all K): each layer maps every
-    hypothesis alike and adds a map of their mean, so each learns from all K slots; the state's features enter once."""
+    hypothesis alike and adds a map of their mean, so each learns from all K slots; the state's features enter once.
+    Without `context` each hypothesis is scored alone: the teacher's outcome model fits it (`training.distill_scorer.outcome_scorer`)."""
 
-    def __init__(self, feature_dim: int, chunk_dim: int, dims: Sequence[int], outputs: int = 3) -> None:
+    def __init__(self, feature_dim: int, chunk_dim: int, dims: Sequence[int], outputs: int = 3, context: bool = True) -> None:
         super().__init__()
         self.state = nn.Linear(feature_dim, dims[0])
         self.chunk = nn.Linear(chunk_dim, dims[0], bias=False)
         self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
-        self.context = nn.ModuleList(nn.Linear(a, b, bias=False) for a, b in zip(dims[:-1], dims[1:]))
+        self.context = nn.ModuleList(nn.Linear(a, b, bias=False) for a, b in zip(dims[:-1], dims[1:])) if context else None
         self.out = nn.Linear(dims[-1], outputs)
 
     def forward(self, features: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
         """[B, K, outputs] from the state's features [B, F] and the K hypotheses' targets in the block's frame [B, K, H * A]."""
         h = F.silu(self.chunk(chunks) + self.state(features)[:, None])
-        for layer, context in zip(self.hidden, self.context):
-            h = F.silu(layer(h) + context(h.mean(dim=1, keepdim=True)))
+        for i, layer in enumerate(self.hidden):
+            h = layer(h) if self.context is None else layer(h) + self.context[i](h.mean(dim=1, keepdim=True))
+            h = F.silu(h)
         return self.out(h)
+
+
+def gather_hypotheses(chunks: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """The hypotheses [B, M, H, A] at `index` [B, M] of chunks [B, K, H, A]."""
+    return torch.gather(chunks, 1, index[:, :, None, None].expand(-1, -1, *chunks.shape[2:]))
 
 
 def _stretched(state: torch.Tensor, actions: torch.Tensor, factor: float | torch.Tensor) -> torch.Tensor:

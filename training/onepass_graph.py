@@ -24,7 +24,7 @@ from torch import nn
 from pusht.geometry import GOAL_POSE
 from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.features import _CORNERS, _CENTER, _SCALE
-from training.onepass import SharedScorer, _stretched, first_nearest
+from training.onepass import SharedScorer, _stretched, first_nearest, gather_hypotheses
 from training.outcome import _FRAME_SCALE, _POSE_SCALE
 
 __all__ = ["LeanScoredChoice", "lean_graph"]
@@ -52,13 +52,17 @@ class LeanScoredChoice(nn.Module):
         if not _fits(flow):
             raise ValueError("a lean graph needs a scoring student of the shipped flows' inputs (see lean_graph)")
         head = flow.onepass
-        self.k, self.chunk_shape, self.scored = head.candidates, head.chunk_shape, head.scored
+        self.k, self.chunk_shape, self.scored, self.top = head.candidates, head.chunk_shape, head.scored, head.scorer_top
         self.stretched = head.scorer_stretches != (1.0,)
         self.register_buffer("stretches", torch.tensor(head.scorer_stretches, dtype=torch.float32))
         with torch.no_grad():
             linear = _feature_map(flow)  # features [20] = z [10] @ linear[:10] + linear[10]
             gen = [m for m in head.net if isinstance(m, nn.Linear)]
             self.gen = nn.ModuleList([_fold_first(gen[0], linear), *(copy.deepcopy(m) for m in gen[1:-1]), _fold_actions(gen[-1], flow, head)])
+            if self.top:  # what picks the hypotheses the second pass sees: the ranker, or the generator's score rows
+                rows = head.candidates * head.chunk_dim
+                self.first_scores = (nn.Sequential(_linear(gen[-1].weight[rows:], gen[-1].bias[rows:])) if head.ranker is None
+                                     else copy.deepcopy(head.ranker))
             # A shared pass's layers map each hypothesis as a row of its own [B * K, ...], plus a map of their mean (`context`).
             self.shared = isinstance(head.scorer, SharedScorer)
             if self.shared:
@@ -86,18 +90,22 @@ class LeanScoredChoice(nn.Module):
         for layer in self.gen[:-1]:
             h = nn.functional.silu(layer(h))
         actions = torch.clamp(self.gen[-1](h).reshape(-1, self.k * self.chunk_shape[0], 2) + agent[:, None], ACTION_LOW, ACTION_HIGH)
+        k = self.k
+        if self.top:  # the first pass's best-scored, in order
+            k, best_first = self.top, torch.topk(self.first_scores(h), self.top, dim=1, largest=False).indices
+            actions = gather_hypotheses(actions.reshape(-1, self.k, *self.chunk_shape), best_first).reshape(-1, k * self.chunk_shape[0], 2)
         # [[cos, -sin], [sin, cos]]: rows @ it rotates world vectors into the block's frame, its transpose back out.
         to_block = torch.cat([cos, -sin, sin, cos], dim=1).reshape(-1, 2, 2)
         frame = torch.matmul(actions - block[:, None], to_block)
-        change = self._shared_changes(z, frame) if self.shared else self._changes(z, frame)  # the K at each scored stretch in turn
+        change = self._shared_changes(z, frame, k) if self.shared else self._changes(z, frame)  # the K at each scored stretch in turn
         moved = torch.matmul(change[:, :, :2], to_block.transpose(1, 2)) + (block - self.goal)[:, None]
         turned = angle[:, None] + change[:, :, 2:]
         pose = torch.cat([moved, torch.cos(turned), torch.sin(turned)], dim=2)
         distance = torch.matmul(pose, self.corners[:4]).add(self.corners[4]).pow(2).sum(dim=2)
         # A zero term keeps `noise` an input of the exported graph, as the ONNX contract has every flow take it.
         best = first_nearest(distance + 0.0 * noise[:, 0, :1])
-        index = torch.remainder(best, self.k).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
-        chosen = torch.gather(actions.reshape(-1, self.k, *self.chunk_shape), 1, index).squeeze(1)
+        index = torch.remainder(best, k).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
+        chosen = torch.gather(actions.reshape(-1, k, *self.chunk_shape), 1, index).squeeze(1)
         if not self.stretched:
             return chosen
         factor = self.stretches[torch.div(best, self.k, rounding_mode="floor")].reshape(-1, 1, 1)
@@ -111,16 +119,18 @@ class LeanScoredChoice(nn.Module):
             h = nn.functional.silu(layer(h))
         return self.sco[-1](h).reshape(-1, self.scored, 3)
 
-    def _shared_changes(self, z: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
-        """[B, K * S, 3]: the shared pass, each hypothesis a row [B * K, ...] so that every layer is one plain product."""
-        k = self.k
+    def _shared_changes(self, z: torch.Tensor, frame: torch.Tensor, k: int) -> torch.Tensor:
+        """[B, K * S, 3]: the shared pass over k hypotheses, each a row [B * k, ...] so that every layer is one plain product."""
         first = self.frame(frame.reshape(-1, self.chunk_shape[0] * 2))
         h = nn.functional.silu((first.reshape(-1, k, first.shape[1]) + self.sco[0](z)[:, None]).reshape(-1, first.shape[1]))
-        for layer, context in zip(self.sco[1:-1], self.context):
+        for i, layer in enumerate(self.sco[1:-1]):
+            if self.context is None:  # each hypothesis alone
+                h = nn.functional.silu(layer(h))
+                continue
             mean = h.reshape(-1, k, h.shape[1]).mean(dim=1)
             out = layer(h)
-            h = nn.functional.silu((out.reshape(-1, k, out.shape[1]) + context(mean)[:, None]).reshape(-1, out.shape[1]))
-        return self.sco[-1](h).reshape(-1, k, self.stretch_count, 3).transpose(1, 2).reshape(-1, self.scored, 3)
+            h = nn.functional.silu((out.reshape(-1, k, out.shape[1]) + self.context[i](mean)[:, None]).reshape(-1, out.shape[1]))
+        return self.sco[-1](h).reshape(-1, k, self.stretch_count, 3).transpose(1, 2).reshape(-1, k * self.stretch_count, 3)
 
 
 def _feature_map(flow: nn.Module) -> torch.Tensor:

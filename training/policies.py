@@ -212,6 +212,9 @@ class FlowPolicy(_ChunkPolicy):
         onepass_dims: Sequence[int] | None = None,
         onepass_scorer_dims: Sequence[int] | None = None,
         onepass_scorer_shared: bool = False,
+        onepass_scorer_context: bool = True,
+        onepass_scorer_top: int | None = None,
+        onepass_ranker_dims: Sequence[int] | None = None,
         onepass_scorer_stretches: Sequence[float] = (1.0,),
         prev_state: bool = False,
         pace_input: bool = False,
@@ -224,7 +227,8 @@ class FlowPolicy(_ChunkPolicy):
             noise_scale=noise_scale, steering_dims=steering_dims, selector_dims=selector_dims,
             selector_candidates=selector_candidates, outcome_dims=outcome_dims, outcome_candidates=outcome_candidates,
             outcome_stretches=list(outcome_stretches), onepass_dims=onepass_dims, onepass_scorer_dims=onepass_scorer_dims,
-            onepass_scorer_shared=onepass_scorer_shared, onepass_scorer_stretches=list(onepass_scorer_stretches), prev_state=prev_state,
+            onepass_scorer_shared=onepass_scorer_shared, onepass_scorer_context=onepass_scorer_context, onepass_scorer_top=onepass_scorer_top,
+            onepass_ranker_dims=onepass_ranker_dims, onepass_scorer_stretches=list(onepass_scorer_stretches), prev_state=prev_state,
             pace_input=pace_input, acting_pace=acting_pace))
         # Sampling only (training draws x0 ~ N(0, I)): starting closer to the mean trades diversity
         # for precision, chosen by rollouts on non-held-out seeds (models/README.md).
@@ -266,7 +270,8 @@ class FlowPolicy(_ChunkPolicy):
 
             self.onepass = OnePassChooser(encoded_dim, (horizon, action_dim), self._arch["onepass_dims"],
                                           self._arch["outcome_candidates"], self._arch["outcome_stretches"], self._arch["onepass_scorer_dims"],
-                                          self._arch["onepass_scorer_shared"], self._arch["onepass_scorer_stretches"])
+                                          self._arch["onepass_scorer_shared"], self._arch["onepass_scorer_stretches"],
+                                          self._arch["onepass_scorer_context"], self._arch["onepass_scorer_top"], self._arch["onepass_ranker_dims"])
 
     def forward(self, state_n: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """Velocity [B, H, A] at noisy normalized chunks x_t [B, H, A] and times t [B] or [B, 1], given normalized states [B, S]."""
