@@ -109,3 +109,14 @@ def test_int8_quantizes_the_hidden_layers_and_records_their_agreement(tmp_path: 
 def test_int8_is_refused_for_a_checkpoint_without_a_scoring_pass(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="--int8 quantizes a scoring student's hidden layers"):
         export_onnx(TEACHER, tmp_path / "t.onnx", int8=True)
+
+
+def test_int8_parts_quantize_only_the_layers_named_and_a_re_export_keeps_them(tmp_path: Path, capsys) -> None:
+    stem = _scoring_student(tmp_path, shared=True, context=False)
+    assert main(["--checkpoint", str(stem), "--int8-parts", "gen.1,sco.1"]) == 0
+    layers = load_card(stem)["onnx"]["int8"]["layers"]
+    assert layers == ["lean.gen.1.weight", "lean.sco.1.weight"]
+    assert main(["--checkpoint", str(stem)]) == 0  # the card's int8 graph again, the same layers
+    assert load_card(stem)["onnx"]["int8"]["layers"] == layers
+    assert main(["--checkpoint", str(stem), "--int8-parts", "gen,head"]) == 2
+    assert "int8 parts must be gen, sco, frame" in capsys.readouterr().err

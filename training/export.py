@@ -31,7 +31,7 @@ from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_po
 from training.cli import HelpFormatter
 from training.onepass_graph import lean_graph
 from training.policies import ActingPolicy
-from training.quantize import agreement, quantize_hidden
+from training.quantize import PARTS, agreement, quantize_hidden
 
 OPSET = 18
 # Exported and torch actions must agree to this many pixels on random states (float32 rounding only).
@@ -56,6 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--triton-repo", default=None, help="write each export as a Triton model repository entry DIR/NAME/1/model.onnx with its config.pbtxt instead")
     parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
     parser.add_argument("--int8", action="store_true", help="a scoring student: its hidden layers' matrix products in int8 (training.quantize), checked against the float32 graph; a card whose graph is int8 gets it again without this")
+    parser.add_argument("--int8-parts", default=None, help="with --int8: comma-separated parts to quantize (gen, sco, frame, or one layer as gen.N / sco.N); default: gen,sco (all)")
     args = parser.parse_args(argv)
 
     if args.checkpoint is not None:
@@ -72,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     for stem, out in jobs:
         try:
             # a card whose graph was quantized gets its int8 graph again: a float32 one would play other actions
-            int8 = args.int8 or bool((read_card(stem).data.get("onnx") or {}).get("int8"))
+            before = (read_card(stem).data.get("onnx") or {}).get("int8")
+            int8 = (tuple(args.int8_parts.split(",")) if args.int8_parts else True) if args.int8 or args.int8_parts else _parts_of(before)
             info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset, int8=int8)
             if args.triton_repo is not None:
                 from training.triton_repo import write_config
@@ -96,12 +98,13 @@ def default_num_steps(stem: str | Path) -> int:
 
 
 def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int | None = None, opset: int = OPSET,
-                int8: bool = False) -> dict[str, Any]:
+                int8: bool | tuple[str, ...] = False) -> dict[str, Any]:
     """Export checkpoint `stem` to `out_path` (default STEM.onnx) and verify it; returns the onnx info (plus max_abs_diff).
 
     `num_steps=None` unrolls the checkpoint's own count (`default_num_steps`). A scoring student exports as its lean
     graph (`training.onepass_graph`), verified against the module like every export; `int8` then quantizes its
-    hidden layers (`training.quantize`) and records how closely the result follows the float32 graph.
+    hidden layers (`training.quantize`; a tuple: those `PARTS` or layers only) and records how closely the result follows the
+    float32 graph.
 
     The card records the export only when the file lies beside it, where the service looks for it;
     an export elsewhere leaves the card as it was.
@@ -131,7 +134,7 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
         except Exception as exc:  # torch.export / onnxscript raise their own error types
             raise ValueError(f"{stem}: ONNX export failed: {type(exc).__name__}: {exc}") from exc
         max_diff = verify_onnx(tmp, acting)
-        quantized = _quantize(tmp, acting) if int8 else None
+        quantized = _quantize(tmp, acting, PARTS if int8 is True else int8) if int8 else None
         opset = _model_opset(tmp)  # the exporter may raise a requested opset; record what the file has
         tmp.replace(out)
     finally:
@@ -180,7 +183,14 @@ def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...]
     return worst
 
 
-def _quantize(path: Path, acting: ActingPolicy, rows: int = 2048) -> dict[str, Any]:
+def _parts_of(int8: dict | None) -> bool | tuple[str, ...]:
+    """What a card's int8 graph quantized, as `quantize_hidden` parts (its layers by name), False for a float32 graph."""
+    if not int8:
+        return False
+    return tuple(name.removeprefix("lean.").removesuffix(".weight") for name in int8["layers"])
+
+
+def _quantize(path: Path, acting: ActingPolicy, parts: tuple[str, ...], rows: int = 2048) -> dict[str, Any]:
     """Quantize the file's hidden layers in place, calibrated on `CALIBRATION_STATES` states of the demonstrations (where
     policies go: random states reach activations no episode does); their names and the agreement with the float32 graph on
     `rows` other states of them."""
@@ -194,7 +204,7 @@ def _quantize(path: Path, acting: ActingPolicy, rows: int = 2048) -> dict[str, A
         return {"state": states, "noise": np.zeros((len(states), acting.policy.horizon, acting.policy.action_dim), np.float32)}
 
     reference = onnx_session(path).run(["actions"], feeds(check))[0]
-    inputs = quantize_hidden(path, feeds(calibration))
+    inputs = quantize_hidden(path, feeds(calibration), parts)
     return {"layers": list(inputs), "inputs": inputs, **agreement(reference, onnx_session(path).run(["actions"], feeds(check))[0])}
 
 

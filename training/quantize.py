@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ACTIVATION_PERCENTILE", "FRAME_WEIGHT", "LAYER_WEIGHT", "WEIGHT_STEPS", "agreement", "input_scale", "quantize_hidden",
+__all__ = ["ACTIVATION_PERCENTILE", "FRAME_WEIGHT", "LAYER_WEIGHT", "PARTS", "WEIGHT_STEPS", "agreement", "input_scale", "quantize_hidden",
            "quantize_weights"]
 
 ACTIVATION_PERCENTILE = 99.9
@@ -33,24 +33,32 @@ saturates beyond 32767; 2 x 255 x 63 fits, so every CPU computes the same exact 
 
 LAYER_WEIGHT = re.compile(r"(^|\.)(gen|sco)\.([0-9]+)\.weight$")
 """the weights of `training.onepass_graph.LeanScoredChoice`'s layers: its generator's (gen.i) and scoring pass's (sco.i)"""
+PARTS = ("gen", "sco")
+"""what `quantize_hidden` may take to int8: the generator's hidden layers, the scoring pass's"""
 FRAME_WEIGHT = re.compile(r"(^|\.)frame\.weight$")
 """the scoring pass's first layer's part on the hypotheses' targets in the block's frame (signed pixels)"""
 
 
-def quantize_hidden(path: str | Path, feeds: dict[str, np.ndarray]) -> dict[str, list[float]]:
-    """Quantize, in place, the ONNX file's generator layers after the first, the scoring pass's part on the hypotheses and its
-    layers between its first and last, each input's scale calibrated on the graph's inputs `feeds`; returns each one's weight
-    name and its input's [scale, zero point] (what `training.int8_module` needs to play the same graph in torch)."""
+def quantize_hidden(path: str | Path, feeds: dict[str, np.ndarray], parts: tuple[str, ...] = PARTS) -> dict[str, list[float]]:
+    """Quantize, in place, the ONNX file's generator layers after the first ("gen") and the scoring pass's part on the
+    hypotheses and its layers between its first and last ("sco"), of the `parts` named, each input's scale calibrated on the
+    graph's inputs `feeds`; returns each one's weight name and its input's [scale, zero point] (what `training.int8_module`
+    needs to play the same graph in torch)."""
     import onnx
 
+    unknown = [part for part in parts if not re.fullmatch(r"(gen|sco)(\.[0-9]+)?|frame", part)]
+    if unknown:
+        raise ValueError(f"int8 parts must be gen, sco, frame or one layer as gen.N / sco.N, got {unknown}")
     path = Path(path)
     model = onnx.load(str(path))
     weights = {init.name: init for init in model.graph.initializer}
     layers = {m.group(0): (m.group(2), int(m.group(3))) for name in weights if (m := LAYER_WEIGHT.search(name))}
     last_scoring = max((i for part, i in layers.values() if part == "sco"), default=-1)
-    quantized = {name for name, (part, i) in layers.items() if i > 0 and (part == "gen" or i < last_scoring)}
+    quantized = {name for name, (part, i) in layers.items()
+                 if i > 0 and (part == "gen" or i < last_scoring) and (part in parts or f"{part}.{i}" in parts)}
+    frame = "sco" in parts or "frame" in parts
     targets = [node for node in model.graph.node if node.op_type == "Gemm" and len(node.input) >= 2
-               and (FRAME_WEIGHT.search(node.input[1]) is not None or _layer(node.input[1], quantized))]
+               and ((frame and FRAME_WEIGHT.search(node.input[1]) is not None) or _layer(node.input[1], quantized))]
     if not targets:
         raise ValueError(f"{path}: no hidden layers to quantize (a scoring student's lean graph has them)")
     ranges = _input_ranges(model, targets, feeds)
