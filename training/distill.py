@@ -46,6 +46,8 @@ CHOOSER_KEYS = ("outcome_dims", "outcome_candidates", "outcome_stretches")
 keeps the candidates and stretches."""
 OUTCOME_PRUNE_STATES = 4096
 """demonstration states on which --scorer-outcome ranks the outcome model's units, where the second pass is narrower"""
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: 0 when finished, 2 on a bad setting."""
     from training.run import RunError
@@ -174,8 +176,11 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
             raise ValueError(f"--init {cfg.init} is not a student of {cfg.teacher} with this run's architecture "
                              f"(its teacher: {start_card.get('teacher')})")
         if cfg.second_pass:  # a second pass (a ranker) of the same widths keeps its layers (but the last, if it scores other stretches)
-            same = {"onepass.scorer.": all(start.architecture.get(k) == student.architecture.get(k) for k in second[:3]),
-                    "onepass.ranker.": start.architecture.get(second[5]) == student.architecture.get(second[5])}
+            def alike(*keys: str) -> bool:
+                return all(start.architecture.get(k) == student.architecture.get(k) for k in keys)
+
+            same = {"onepass.scorer.": alike("onepass_scorer_dims", "onepass_scorer_shared", "onepass_scorer_context"),
+                    "onepass.ranker.": alike("onepass_ranker_dims")}
             own = student.state_dict()
             kept = {k: v for k, v in start.state_dict().items() if k in own and (
                 all(not k.startswith(part) or (alike and own[k].shape == v.shape) for part, alike in same.items()))}
