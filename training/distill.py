@@ -161,7 +161,7 @@ def _teacher_and_student(cfg: DistillConfig) -> tuple[torch.nn.Module, torch.nn.
         student = student_of(teacher, noise_scale, onepass_dims=cfg.student_hidden_dims or DEFAULT_ONEPASS_DIMS)
     elif cfg.student == "multichoice":  # deterministic whatever the labels' noise: it never reads its start noise
         outcome = cfg.scorer_outcome  # the outcome model's widths unless narrower ones are given, each hypothesis alone
-        scorer_dims = cfg.scorer_dims or ",".join(map(str, teacher.architecture["outcome_dims"])) if outcome else cfg.scorer_dims
+        scorer_dims = cfg.scorer_dims or (",".join(map(str, teacher.architecture["outcome_dims"])) if outcome else "")
         student = student_of(teacher, 0.0, onepass_dims=cfg.student_hidden_dims or DEFAULT_MULTICHOICE_DIMS, hypotheses=cfg.hypotheses,
                              scorer_dims=scorer_dims, scorer_shared=cfg.scorer_shared or outcome, scorer_stretches=cfg.scored_stretches(),
                              scorer_context=cfg.scorer_context and not outcome, scorer_top=cfg.scorer_top, ranker_dims=cfg.ranker_dims)

@@ -95,8 +95,10 @@ class DistillConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.round_seed in RESERVED_SEEDS:
             raise ValueError(f"round_seed {self.round_seed} lies among the evaluation seeds {RESERVED_SEEDS.start}..{RESERVED_SEEDS.stop - 1}")
-        if self.student_hidden_dims and not all(w.strip().isdigit() and int(w) > 0 for w in self.student_hidden_dims.split(",")):
-            raise ValueError(f"student_hidden_dims must be comma-separated positive widths, got {self.student_hidden_dims!r}")
+        for name in ("student_hidden_dims", "scorer_dims", "ranker_dims"):
+            widths = getattr(self, name)
+            if widths and not all(w.strip().isdigit() and int(w) > 0 for w in widths.split(",")):
+                raise ValueError(f"{name} must be comma-separated positive widths, got {widths!r}")
         if not self.outcome_weight >= 0:
             raise ValueError(f"outcome_weight must be >= 0, got {self.outcome_weight}")
         if self.outcome_chunks > 1 and not self.outcome_weight:
@@ -117,14 +119,10 @@ class DistillConfig:
                              "or --scorer-shared --no-scorer-context")
         if self.ranker_dims and not self.scorer_top:
             raise ValueError("--ranker-dims picks the hypotheses the second pass scores: give --scorer-top too")
-        if self.ranker_dims and not all(w.strip().isdigit() and int(w) > 0 for w in self.ranker_dims.split(",")):
-            raise ValueError(f"ranker_dims must be comma-separated positive widths, got {self.ranker_dims!r}")
         if self.scorer_shared and not self.scorer_dims:
             raise ValueError("--scorer-shared shapes the second pass: give --scorer-dims too")
         if (self.top > 1 or self.scorer_dims) and self.student != "multichoice":
             raise ValueError("--top and --scorer-dims belong to a multichoice student: give --student multichoice")
-        if self.scorer_dims and not all(w.strip().isdigit() and int(w) > 0 for w in self.scorer_dims.split(",")):
-            raise ValueError(f"scorer_dims must be comma-separated positive widths, got {self.scorer_dims!r}")
         if self.scorer_outcome and (self.scorer_shared or not self.scorer_context or self.scored_stretches() != [1.0]):
             raise ValueError("--scorer-outcome shapes the second pass as the outcome model (shared, no context) and scores plain "
                              "hypotheses: give no --scorer-shared, --no-scorer-context or --scorer-stretches")

@@ -73,8 +73,10 @@ def main(argv: list[str] | None = None) -> int:
     for stem, out in jobs:
         try:
             # a card whose graph was quantized gets its int8 graph again: a float32 one would play other actions
-            before = (read_card(stem).data.get("onnx") or {}).get("int8")
-            int8 = (tuple(args.int8_parts.split(",")) if args.int8_parts else True) if args.int8 or args.int8_parts else _parts_of(before)
+            if args.int8_parts:
+                int8 = tuple(args.int8_parts.split(","))
+            else:
+                int8 = args.int8 or _parts_of((read_card(stem).data.get("onnx") or {}).get("int8"))
             info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset, int8=int8)
             if args.triton_repo is not None:
                 from training.triton_repo import write_config
