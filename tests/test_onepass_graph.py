@@ -61,14 +61,14 @@ def test_the_lean_graph_plays_the_modules_choice(tmp_path: Path, stretches: tupl
         assert 0.1 < float((apart > 1e-3).float().mean()) < 0.9
 
 
-def test_the_lean_export_has_a_third_of_the_modules_nodes(tmp_path: Path) -> None:
+def test_the_lean_export_has_under_a_third_of_the_modules_nodes(tmp_path: Path) -> None:
     stem = _scoring_student(tmp_path)
     export_onnx(stem, tmp_path / "lean.onnx")
     acting = load_acting_policy(stem, num_steps=1).eval()
     inputs = graph_inputs(acting)
     _torch_export(_GraphModule(acting, inputs).eval(), _states(4, seed=2), inputs, tmp_path / "module.onnx", 18)
     lean, module = (len(onnx.load(str(tmp_path / f"{n}.onnx")).graph.node) for n in ("lean", "module"))
-    assert lean * 2 < module, (lean, module)
+    assert lean * 3 < module, (lean, module)  # 49 and 164 nodes
 
 
 @pytest.mark.parametrize("shared", [False, True])
@@ -79,14 +79,14 @@ def test_int8_quantizes_the_hidden_layers_and_records_their_agreement(tmp_path: 
     plain = load_policy(stem.with_suffix(".onnx")).act(state, noise)
     assert main(["--checkpoint", str(stem), "--int8"]) == 0
     info = load_card(stem)["onnx"]["int8"]
-    # The generator after its first layer, the scoring pass's first layer's part on the hypotheses (signed pixels), and its
-    # layers between its first and last (2 x 32: the one hidden product).
-    layers = ["lean.gen.1.weight", "lean.gen.2.weight", "lean.frame.weight", "lean.sco.1.weight"]
+    # The generator after its first layer and the scoring pass's layers between its first and last (2 x 32: the one hidden
+    # product); not its first layer's part on the hypotheses (signed pixels), which only --int8-parts frame takes.
+    layers = ["lean.gen.1.weight", "lean.gen.2.weight", "lean.sco.1.weight"]
     assert info["layers"] == layers and "int8:" in capsys.readouterr().out
     model = onnx.load(str(stem.with_suffix(".onnx")))
     # each quantized layer is two nodes: its input to uint8 at a fixed scale, and the integer product back to float
-    assert sum(n.op_type == "MatMulIntegerToFloat" for n in model.graph.node) == 4
-    assert sum(n.op_type == "QuantizeLinear" for n in model.graph.node) == 4
+    assert sum(n.op_type == "MatMulIntegerToFloat" for n in model.graph.node) == 3
+    assert sum(n.op_type == "QuantizeLinear" for n in model.graph.node) == 3
     assert 0 <= info["median_px"] <= info["p90_px"] < 512
     policy = load_policy(stem.with_suffix(".onnx"))
     quantized = policy.act(state, noise)
@@ -113,9 +113,9 @@ def test_int8_is_refused_for_a_checkpoint_without_a_scoring_pass(tmp_path: Path)
 
 def test_int8_parts_quantize_only_the_layers_named_and_a_re_export_keeps_them(tmp_path: Path, capsys) -> None:
     stem = _scoring_student(tmp_path, shared=True, context=False)
-    assert main(["--checkpoint", str(stem), "--int8-parts", "gen.1,sco.1"]) == 0
+    assert main(["--checkpoint", str(stem), "--int8-parts", "gen.1,frame,sco.1"]) == 0
     layers = load_card(stem)["onnx"]["int8"]["layers"]
-    assert layers == ["lean.gen.1.weight", "lean.sco.1.weight"]
+    assert layers == ["lean.gen.1.weight", "lean.frame.weight", "lean.sco.1.weight"]
     assert main(["--checkpoint", str(stem)]) == 0  # the card's int8 graph again, the same layers
     assert load_card(stem)["onnx"]["int8"]["layers"] == layers
     assert main(["--checkpoint", str(stem), "--int8-parts", "gen,head"]) == 2

@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--triton-repo", default=None, help="write each export as a Triton model repository entry DIR/NAME/1/model.onnx with its config.pbtxt instead")
     parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
     parser.add_argument("--int8", action="store_true", help="a scoring student: its hidden layers' matrix products in int8 (training.quantize), checked against the float32 graph; a card whose graph is int8 gets it again without this")
-    parser.add_argument("--int8-parts", default=None, help="with --int8: comma-separated parts to quantize (gen, sco, frame, or one layer as gen.N / sco.N); default: gen,sco (all)")
+    parser.add_argument("--int8-parts", default=None, help="with --int8: comma-separated parts to quantize (gen, sco, frame, or one layer as gen.N / sco.N); default: gen,sco (frame stays float32 unless named)")
     args = parser.parse_args(argv)
 
     if args.checkpoint is not None:

@@ -1,12 +1,13 @@
 """Int8 matrix products for an exported scoring student's hidden layers: weights per output unit, activations by fixed scales.
 
 At batch 1 a chunk's cost is reading the weights and running the graph's nodes (about a microsecond each).
-Quantized: the generator's layers after its first, the scoring pass's first layer's part on the hypotheses'
-targets (signed pixels in the block's frame) and its hidden layers. Float32: the parts of both first layers
-on the state's ten numbers (pixel coordinates beside sines: one scale would crush the sines), and the scoring
-pass's last, whose few outputs decide which hypothesis plays and cost nothing to keep.
+Quantized: the generator's layers after its first and the scoring pass's hidden layers. Float32: the parts of
+both first layers on the state's numbers (pixel coordinates beside sines: one scale would crush the sines), the
+scoring pass's last, whose few outputs decide which hypothesis plays and cost nothing to keep, and unless named
+(`frame`) its first layer's part on the hypotheses' targets (signed pixels in the block's frame): 24 inputs, whose
+int8 product costs more than its float32 one (three nodes for one).
 
-Weights are int8 (7 bits of it: `WEIGHT_STEPS`) with one scale per output unit. Each layer's input gets one
+Weights are 8-bit (`WEIGHT_STEPS`, stored as uint8 around `WEIGHT_ZERO`) with one scale per output unit. Each layer's input gets one
 fixed uint8 scale and zero point, calibrated once on states (`quantize_hidden`): a layer is then two nodes
 (QuantizeLinear, and ONNX Runtime's MatMulIntegerToFloat with its bias), not the eleven that scaling each row in
 the graph took, and no row's actions can depend on the other rows of its batch, as the service's contract has
@@ -27,9 +28,10 @@ __all__ = ["ACTIVATION_PERCENTILE", "FRAME_WEIGHT", "LAYER_WEIGHT", "PARTS", "WE
 ACTIVATION_PERCENTILE = 99.9
 """a layer's input scale spans this percentile of its calibration values (and 100 minus it); beyond, values saturate"""
 
-WEIGHT_STEPS = 63
-"""int8 weights use -63..63: CPUs without VNNI (AVX2) multiply uint8 by int8 in pairs summed in int16 (vpmaddubsw), which
-saturates beyond 32767; 2 x 255 x 63 fits, so every CPU computes the same exact products (127 gave other actions there)"""
+WEIGHT_STEPS = 127
+"""weights use -127..127, stored as uint8 around a zero point of 128: ONNX Runtime multiplies uint8 by uint8 exactly on
+every CPU, while uint8 by int8 on CPUs without VNNI (AVX2) sums pairs in int16 (vpmaddubsw), which saturates unless the
+weights keep to -63..63, half the resolution (the outcome model's layers then choose other hypotheses)"""
 
 LAYER_WEIGHT = re.compile(r"(^|\.)(gen|sco)\.([0-9]+)\.weight$")
 """the weights of `training.onepass_graph.LeanScoredChoice`'s layers: its generator's (gen.i) and scoring pass's (sco.i)"""
@@ -40,8 +42,8 @@ FRAME_WEIGHT = re.compile(r"(^|\.)frame\.weight$")
 
 
 def quantize_hidden(path: str | Path, feeds: dict[str, np.ndarray], parts: tuple[str, ...] = PARTS) -> dict[str, list[float]]:
-    """Quantize, in place, the ONNX file's generator layers after the first ("gen") and the scoring pass's part on the
-    hypotheses and its layers between its first and last ("sco"), of the `parts` named, each input's scale calibrated on the
+    """Quantize, in place, the ONNX file's generator layers after the first ("gen"), the scoring pass's layers between its
+    first and last ("sco") and its first layer's part on the hypotheses ("frame"), of the `parts` named, each input's scale calibrated on the
     graph's inputs `feeds`; returns each one's weight name and its input's [scale, zero point] (what `training.int8_module`
     needs to play the same graph in torch)."""
     import onnx
@@ -56,7 +58,7 @@ def quantize_hidden(path: str | Path, feeds: dict[str, np.ndarray], parts: tuple
     last_scoring = max((i for part, i in layers.values() if part == "sco"), default=-1)
     quantized = {name for name, (part, i) in layers.items()
                  if i > 0 and (part == "gen" or i < last_scoring) and (part in parts or f"{part}.{i}" in parts)}
-    frame = "sco" in parts or "frame" in parts
+    frame = "frame" in parts
     targets = [node for node in model.graph.node if node.op_type == "Gemm" and len(node.input) >= 2
                and ((frame and FRAME_WEIGHT.search(node.input[1]) is not None) or _layer(node.input[1], quantized))]
     if not targets:
@@ -140,6 +142,10 @@ def quantize_weights(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(np.round(w / w_scale[:, None]), -WEIGHT_STEPS, WEIGHT_STEPS).astype(np.int8), w_scale.astype(np.float32)
 
 
+WEIGHT_ZERO = 128
+"""the zero point of the stored uint8 weights"""
+
+
 def _quantized_linear(node, weights: dict, scale: float, zero: int) -> tuple[list, list]:
     """The nodes and constants of y = x @ W.T + b with int8 W (per output unit) and x in uint8 at `scale` around `zero`."""
     from onnx import helper, numpy_helper
@@ -149,12 +155,13 @@ def _quantized_linear(node, weights: dict, scale: float, zero: int) -> tuple[lis
     has_bias = len(node.input) > 2 and node.input[2] != ""  # the exporter drops an all-zero bias
     b = numpy_helper.to_array(weights[node.input[2]]) if has_bias else np.zeros(len(w_q))
     constants = {"x_scale": np.array(scale, dtype=np.float32), "x_zero": np.array(zero, dtype=np.uint8),
-                 "w": w_q.T.copy(), "w_scale": w_scale, "b": b.astype(np.float32)}
+                 "w": (w_q.T.astype(np.int16) + WEIGHT_ZERO).astype(np.uint8), "w_scale": w_scale,
+                 "w_zero": np.full(len(w_q), WEIGHT_ZERO, dtype=np.uint8), "b": b.astype(np.float32)}
     c = {k: f"{p}_{k}" for k in constants}
     nodes = [
         helper.make_node("QuantizeLinear", [node.input[0], c["x_scale"], c["x_zero"]], [f"{p}_x_q"]),
         # (x_q - zero) @ Wq times both scales, plus the bias: one contrib node of ONNX Runtime's CPU kernels
-        helper.make_node("MatMulIntegerToFloat", [f"{p}_x_q", c["w"], c["x_scale"], c["w_scale"], c["x_zero"], "", c["b"]],
+        helper.make_node("MatMulIntegerToFloat", [f"{p}_x_q", c["w"], c["x_scale"], c["w_scale"], c["x_zero"], c["w_zero"], c["b"]],
                          [node.output[0]], domain="com.microsoft"),
     ]
     return nodes, [numpy_helper.from_array(v, c[k]) for k, v in constants.items()]
