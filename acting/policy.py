@@ -2,7 +2,8 @@
 
 `Policy.act` takes states [B, state_dim] (and, for a policy that uses them, the previous states), and
 for a flow per-row `seeds` or explicit `noise`; it pads the batch to a multiple of four rows
-(`pusht.seeding.pad_rows`, so a row's actions never depend on its batch mates) and returns actions
+(`pusht.seeding.pad_rows`, so a row's actions never depend on its batch mates; a graph whose rows are the same
+alone as in any batch runs unpadded, `batch_multiple`) and returns actions
 [B, horizon, action_dim]. Backends implement `_run` once each: ONNX Runtime (`acting.onnx_backend`)
 and torch (`acting.torch_backend`, imported only when asked for).
 """
@@ -29,6 +30,8 @@ class Policy:
     takes_prev_state = False
     shares_zero_noise = False
     """Whether `_run` may get one read-only zero-noise array for every call (its backend never writes an input)."""
+    batch_multiple = BATCH_MULTIPLE
+    """`act` pads a call to a multiple of this many rows: 1 where each row's actions are the same alone as in any batch"""
 
     def __init__(self, card: Card) -> None:
         self.card = card
@@ -55,19 +58,19 @@ class Policy:
         rows = len(states)
         if self.kind == "flow":
             if noise is None and seeds is None and not self.uses_noise and noise_scale == 1.0 and self.shares_zero_noise:
-                noise = self._zero_noise(rows + -rows % BATCH_MULTIPLE)  # already padded
+                noise = self._zero_noise(rows + -rows % self.batch_multiple)  # already padded
             else:
                 noise = self._noise(rows, seeds, noise)
                 if noise_scale != 1.0:
                     noise = noise * np.float32(noise_scale)
-                noise = pad_rows(noise)
+                noise = pad_rows(noise, self.batch_multiple)
         prev = None
         if self.takes_prev_state:
             prev = states if prev_states is None else np.ascontiguousarray(prev_states, dtype=np.float32)
             if prev.shape != states.shape:
                 raise ValueError(f"prev_states must have the shape of states {list(states.shape)}, got {list(prev.shape)}")
-            prev = pad_rows(prev)
-        return self._run(pad_rows(states), prev, noise, num_steps)[:rows]
+            prev = pad_rows(prev, self.batch_multiple)
+        return self._run(pad_rows(states, self.batch_multiple), prev, noise, num_steps)[:rows]
 
     def check_num_steps(self, num_steps: int) -> str | None:
         """None if a chunk can be sampled in `num_steps` flow steps, else why not."""

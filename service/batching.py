@@ -9,11 +9,12 @@ budget) and the next few half size, so a 1-row request waits about half a call h
 1,024-row batches are queued, while bulk rows still fill the calls (a model's cost per row is flat
 beyond a few dozen rows). Noise is drawn per request (`seed`) or per row (`seeds`) and sliced, in
 the policy's own chunk shape (its card's horizon and action width), and the call is one
-`acting.Policy.act`, which pads it to a multiple of 4 rows (`pusht.seeding.pad_rows`), so an answer
-never depends, to the last bit, on what else was in the batch. Requests whose client left (their future
-is done) are dropped before their rows reach the model. Compute runs in the worker thread (ONNX
-Runtime and torch release the GIL), off the event loop, except a lone small request with nothing else
-queued (`inline_max_cost`): handing it to a thread and back costs more than its model call.
+`acting.Policy.act`, which pads it to a multiple of 4 rows (`pusht.seeding.pad_rows`; none for a graph
+whose rows are the same alone as in any batch), so an answer never depends, to the last bit, on what
+else was in the batch. Requests whose client left (their future is done) are dropped before their rows
+reach the model. Compute runs in the worker thread (ONNX Runtime and torch release the GIL), off the
+event loop, except a lone small request with nothing else queued (`inline_max_cost`): handing it to a
+thread and back costs more than its model call.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from acting import Policy
-from pusht.seeding import BATCH_MULTIPLE, chunk_noise, row_noise
+from pusht.seeding import chunk_noise, row_noise
 
 __all__ = ["Batcher", "Overloaded"]
 
@@ -223,8 +224,9 @@ class Batcher:
         unit = group[0].unit
         # A call computes a whole padded group of rows however few it takes (`pad_rows`), so it may always take one,
         # even where a single row costs more than max_cost (a flow that chooses among many candidate chunks).
-        left = max(BATCH_MULTIPLE, min(self.max_rows, self.max_cost // unit))
-        short = max(BATCH_MULTIPLE, left // 8)
+        group_rows = self.policy.batch_multiple
+        left = max(group_rows, min(self.max_rows, self.max_cost // unit))
+        short = max(group_rows, left // 8)
         remaining_first, remaining_last = (len(it.states) - it.taken for it in (group[0], group[-1]))
         if not self._last_short and remaining_first <= short < remaining_last:
             # Small requests beside bulk ones go in a short call, so they wait only for the call already

@@ -98,6 +98,7 @@ def test_card_records_the_export(exported) -> None:
         "outputs": ["actions"],
         "num_steps": 10,
         "opset": card["onnx"]["opset"],
+        "batch_invariant": card["onnx"]["batch_invariant"],
     }
     model = onnx.load(str(out))
     assert card["onnx"]["opset"] == next(o.version for o in model.opset_import if o.domain in ("", "ai.onnx")) >= 17
@@ -112,6 +113,20 @@ def test_onnx_is_deterministic_and_flow_follows_its_noise(exported, replay) -> N
     if kind == "flow":
         feeds["noise"] = feeds["noise"] + 1.0
         assert not np.allclose(first[:, 1:], session.run(["actions"], feeds)[0][:, 1:])
+
+
+def test_a_rows_actions_do_not_depend_on_its_batch_padded_or_not(exported, replay) -> None:
+    # The export records whether each row's actions are the same alone as in batches (float32 products may round a full
+    # group of four rows differently from fewer); acting runs such a graph unpadded, any other padded to four rows.
+    from acting import load_policy
+
+    kind, stem, out = exported
+    policy = load_policy(out)
+    assert policy.batch_multiple == (1 if load_card(stem)["onnx"]["batch_invariant"] else 4)
+    feeds = _inputs(kind, replay, 37, seed=5)
+    together = policy.act(feeds["state"], noise=feeds.get("noise"))
+    alone = [policy.act(feeds["state"][i : i + 1], noise=None if kind == "mse" else feeds["noise"][i : i + 1]) for i in range(37)]
+    np.testing.assert_array_equal(np.concatenate(alone), together)
 
 
 def test_export_of_a_missing_checkpoint_names_it(tmp_path: Path) -> None:

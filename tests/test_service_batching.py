@@ -78,7 +78,7 @@ def test_batcher_answers_in_order_and_passes_model_errors_on() -> None:
     class Flaky:
         """Just the part of `acting.Policy` the batcher uses."""
 
-        name, kind, horizon, action_dim = "flaky", "mse", 12, 2
+        name, kind, horizon, action_dim, batch_multiple = "flaky", "mse", 12, 2, 4
 
         def network_evaluations(self, num_steps=None):
             return 1
@@ -114,7 +114,7 @@ def test_a_lone_small_request_runs_on_the_event_loop_and_the_rest_on_the_worker(
     class Recording:
         """Just the part of `acting.Policy` the batcher uses; notes the thread of every call."""
 
-        name, kind, horizon, action_dim = "recording", "mse", 12, 2
+        name, kind, horizon, action_dim, batch_multiple = "recording", "mse", 12, 2, 4
         threads: list[str] = []
 
         def network_evaluations(self, num_steps=None):

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from acting import read_card
-from acting.onnx_backend import onnx_session
+from acting.onnx_backend import batch_invariant, onnx_session
 from pusht.spec import DEFAULT_NUM_STEPS
 from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, update_card
 from training.cli import HelpFormatter
@@ -36,6 +36,8 @@ from training.quantize import PARTS, agreement, quantize_hidden
 OPSET = 18
 # Exported and torch actions must agree to this many pixels on random states (float32 rounding only).
 VERIFY_ATOL = 1e-3
+INVARIANCE_CHECK_SIZES = (2, 3, 4, 5, 8, 37)
+"""batch sizes whose rows `rows_batch_invariant` compares with the same rows alone"""
 CALIBRATION_DATA = Path(__file__).resolve().parents[1] / "data" / "pusht_lowdim.zarr"
 CALIBRATION_STATES = 4096
 """--int8 calibrates each layer's input scale on this many states of the project's demonstrations"""
@@ -106,7 +108,7 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
     `num_steps=None` unrolls the checkpoint's own count (`default_num_steps`). A scoring student exports as its lean
     graph (`training.onepass_graph`), verified against the module like every export; `int8` then quantizes its
     hidden layers (`training.quantize`; a tuple: those `PARTS` or layers only) and records how closely the result follows the
-    float32 graph.
+    float32 graph. The card also records whether each row's actions are the same alone as in a batch (`batch_invariant`).
 
     The card records the export only when the file lies beside it, where the service looks for it;
     an export elsewhere leaves the card as it was.
@@ -137,6 +139,7 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
             raise ValueError(f"{stem}: ONNX export failed: {type(exc).__name__}: {exc}") from exc
         max_diff = verify_onnx(tmp, acting)
         quantized = _quantize(tmp, acting, PARTS if int8 is True else int8) if int8 else None
+        invariant = rows_batch_invariant(tmp, acting)
         opset = _model_opset(tmp)  # the exporter may raise a requested opset; record what the file has
         tmp.replace(out)
     finally:
@@ -147,6 +150,7 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
         "outputs": ["actions"],
         "num_steps": num_steps,  # meaningful for flow only; recorded for both so every card reads the same
         "opset": opset,
+        "batch_invariant": invariant,
     }
     if quantized is not None:
         info["int8"] = quantized
@@ -183,6 +187,20 @@ def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...]
     if worst > VERIFY_ATOL:
         raise ValueError(f"{path}: ONNX Runtime and torch differ by {worst:.3g} px (> {VERIFY_ATOL})")
     return worst
+
+
+def rows_batch_invariant(path: str | Path, acting: ActingPolicy, rows: int = 512) -> bool:
+    """Whether the ONNX file gives each of `rows` example states (and noises) the same bits alone as inside batches of
+    `INVARIANCE_CHECK_SIZES` rows: then the acting layer may run it unpadded (`acting.Policy.batch_multiple`)."""
+    session = onnx_session(path)
+    inputs = graph_inputs(acting)
+    example = dict(zip(inputs, (t.numpy() for t in _example_inputs(acting, batch=rows, seed=7))))
+
+    def run(states: np.ndarray, noise: np.ndarray | None) -> np.ndarray:
+        feeds = {"state": states, "noise": noise, "prev_state": states}
+        return session.run(["actions"], {name: feeds[name] for name in inputs})[0]
+
+    return batch_invariant(run, example["state"], example.get("noise"), INVARIANCE_CHECK_SIZES)
 
 
 def _parts_of(int8: dict | None) -> bool | tuple[str, ...]:
