@@ -33,6 +33,7 @@ from pusht.spec import SUCCESS_COVERAGE
 from training.checkpoint import load_checkpoint
 from training.cli import HelpFormatter
 from training.features import tee_keypoints
+from training.finetune_config import CHOOSER
 
 KEYPOINT_SCALE = 128.0  # training.features scales arena pixels by 1/128
 
@@ -46,7 +47,7 @@ GATE_PX, GATE_RAD = 12.0, 0.15
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: run one diagnostic, print one JSON line."""
     parser = argparse.ArgumentParser(prog="python scripts/finish_diagnostics.py", description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
-    parser.add_argument("--model", default="models/flow", help="flow checkpoint stem")
+    parser.add_argument("--model", default=CHOOSER, help="flow checkpoint stem (default: the outcome chooser)")
     sub = parser.add_subparsers(dest="mode", required=True)
     smooth = sub.add_parser("smoothness", help="agreement of one chunk's outcome with the same chunk shifted by a few px", formatter_class=HelpFormatter)
     smooth.add_argument("--states", type=int, default=300, help="near-goal states to test")

@@ -80,7 +80,9 @@ def phase_steps(summary) -> dict:
     for trajectory, episode in zip(summary.trajectories, summary.episodes):
         covered = [coverage(float(s[2]), float(s[3]), float(s[4])) for s in trajectory.states]
         for key in ("0.3", "0.9"):
-            step = next((t for t, c in enumerate(covered) if c > float(key)), None)
+            # a trajectory holds the state before each step, not the one a success ends on: a push that covers from
+            # under 0.9 to success in its last step reached 0.9 there too
+            step = next((t for t, c in enumerate(covered) if c > float(key)), episode.length if episode.success else None)
             if step is not None:
                 firsts[key].append(step)
         if episode.success:

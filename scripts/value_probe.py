@@ -2,7 +2,7 @@
 
     python scripts/value_probe.py --collect 6000 --episodes 500 --seed 300000
 
-The shipped chooser (`models/flow`) scores a candidate chunk by how close its predicted end pose of the
+The outcome chooser (`records/flow-outcome16-stretch`, shipped before its one-pass student) scores a candidate chunk by how close its predicted end pose of the
 block lies to the goal: one chunk deep, blind to where the agent ends. This probe plays the chooser on
 training seeds (from 21,000,000), fits V(state) = E[gamma^(chunks until success)] (0 if the episode
 fails) on the states it visits, then plays episodes choosing by V of each candidate's predicted next
@@ -31,6 +31,7 @@ from pusht.results import bootstrap_ci95  # noqa: E402
 from pusht.seeding import decision_seed, row_noise  # noqa: E402
 from training.checkpoint import load_checkpoint  # noqa: E402
 from training.cli import HelpFormatter  # noqa: E402
+from training.finetune_config import CHOOSER  # noqa: E402
 from training.outcome import goal_corner_distance  # noqa: E402
 
 HORIZON = 12
@@ -39,7 +40,7 @@ HORIZON = 12
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: collect, fit, compare; one JSON line."""
     parser = argparse.ArgumentParser(prog="python scripts/value_probe.py", description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
-    parser.add_argument("--model", default="models/flow", help="checkpoint stem of a flow with an outcome chooser")
+    parser.add_argument("--model", default=CHOOSER, help="checkpoint stem of a flow with an outcome chooser")
     parser.add_argument("--collect", type=int, default=6000, help="episodes of the chooser whose states fit the value")
     parser.add_argument("--collect-seed", type=int, default=21_000_000, help="first seed of those episodes (training range)")
     parser.add_argument("--gamma", type=float, default=0.97, help="discount per chunk of the value's target")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.service_fixtures import SHIPPED_MODELS, UvicornProcess, cached_test_models, shipped_models_available
+from tests.service_fixtures import SHIPPED_MODELS, UvicornProcess, cached_chooser_models, cached_test_models, shipped_models_available
 
 
 @pytest.fixture(scope="session")
@@ -19,6 +19,12 @@ def test_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def horizon16_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Random-weight mse and flow policies whose cards say 16-action chunks (not the default 12)."""
     return cached_test_models(tmp_path_factory.getbasetemp(), horizon=16)
+
+
+@pytest.fixture(scope="session")
+def chooser_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The shipped mse and the outcome chooser record as `flow` with its 10-step ONNX export (a flow with steps and noise)."""
+    return cached_chooser_models(tmp_path_factory.getbasetemp())
 
 
 @pytest.fixture(scope="module", params=["test", "shipped"], ids=["test-models", "shipped-models"])

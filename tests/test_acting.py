@@ -1,4 +1,5 @@
-"""The one acting interface on the shipped models: no torch unless asked, per-row seeds, batch independence, step counts, card rules."""
+"""The one acting interface on the shipped models (and the chooser record where steps and noise matter): no torch unless asked,
+per-row seeds, batch independence, step counts, card rules."""
 
 from __future__ import annotations
 
@@ -28,9 +29,11 @@ def test_importing_acting_and_running_onnx_imports_no_torch():
     assert done.stdout.strip() == "False"
 
 
-@pytest.mark.parametrize("model", ["flow.onnx", "flow", "mse.onnx", "mse"])
-def test_a_row_depends_on_its_own_state_and_seed_only(model):
-    policy = acting.load_policy(MODELS / model)
+@pytest.mark.parametrize("folder, model", [("shipped", "flow.onnx"), ("shipped", "flow"), ("shipped", "mse.onnx"), ("shipped", "mse"),
+                                           ("chooser", "flow.onnx"), ("chooser", "flow")])
+def test_a_row_depends_on_its_own_state_and_seed_only(folder, model, request):
+    # the shipped student reads no noise; the chooser's rows also depend on their seeds' noise
+    policy = acting.load_policy((MODELS if folder == "shipped" else request.getfixturevalue("chooser_models")) / model)
     seeds = [11, 12, 13, 14, 15, 16, 17, 18, 19]
     together = policy.act(STATES, seeds=seeds)
     assert together.shape == (9, policy.horizon, 2) and together.dtype == np.float32
@@ -40,8 +43,8 @@ def test_a_row_depends_on_its_own_state_and_seed_only(model):
         np.testing.assert_array_equal(alone[0], together[i])  # bit for bit, whatever the batch
 
 
-def test_seeds_are_row_noise_and_noise_scale_multiplies_it():
-    policy = acting.load_policy(MODELS / "flow.onnx")
+def test_seeds_are_row_noise_and_noise_scale_multiplies_it(chooser_models):
+    policy = acting.load_policy(chooser_models / "flow.onnx")  # a flow that reads its start noise
     seeds = list(range(100, 109))
     np.testing.assert_array_equal(policy.act(STATES, seeds=seeds), policy.act(STATES, noise=row_noise(seeds)))
     np.testing.assert_array_equal(policy.act(STATES, seeds=seeds, noise_scale=0.5),
@@ -54,20 +57,59 @@ def test_seeds_are_row_noise_and_noise_scale_multiplies_it():
         policy.act(np.zeros((3, 4), np.float32))
 
 
-def test_step_counts_each_backend_can_run():
-    onnx, torch_policy, mse = (acting.load_policy(MODELS / m) for m in ("flow.onnx", "flow", "mse.onnx"))
+def test_step_counts_each_backend_can_run(chooser_models):
+    onnx, torch_policy = (acting.load_policy(chooser_models / m) for m in ("flow.onnx", "flow"))
+    mse = acting.load_policy(MODELS / "mse.onnx")
     assert onnx.default_num_steps == torch_policy.default_num_steps == 10 and mse.default_num_steps is None
     assert onnx.check_num_steps(10) is None and "unrolls 10 flow steps" in onnx.check_num_steps(4)
     assert torch_policy.check_num_steps(4) is None
     assert "applies to flow policies" in mse.check_num_steps(4)
-    # the shipped flow chooses among 64 candidates at 4 stretches: each candidate takes the flow's steps, each stretch of it
+    # the chooser picks among 64 candidates at 4 stretches: each candidate takes the flow's steps, each stretch of it
     # one outcome-model pass
     assert onnx.network_evaluations() == 64 * 10 + 64 * 4 and torch_policy.network_evaluations(4) == 64 * 4 + 64 * 4
     assert mse.network_evaluations() == 1
     with pytest.raises(ValueError, match="unrolls 10 flow steps"):
-        acting.load_policy(MODELS / "flow.onnx", num_steps=4)
-    fewer = acting.load_policy(MODELS / "flow", num_steps=4)
+        acting.load_policy(chooser_models / "flow.onnx", num_steps=4)
+    fewer = acting.load_policy(chooser_models / "flow", num_steps=4)
     np.testing.assert_array_equal(fewer.act(STATES, seeds=range(9)), torch_policy.act(STATES, seeds=range(9), num_steps=4))
+
+
+@pytest.mark.parametrize("model", ["flow.onnx", "flow"])
+def test_the_shipped_flow_decides_in_two_passes_without_steps_or_noise(model):
+    policy = acting.load_policy(MODELS / model)
+    assert policy.kind == "flow" and policy.default_num_steps is None and not policy.uses_noise
+    # 16 hypotheses in one pass, then the scoring pass: whatever num_steps a caller names
+    assert policy.network_evaluations() == policy.network_evaluations(10) == 2
+    for steps in (1, 4, 10):
+        assert "num_steps does not apply" in policy.check_num_steps(steps) and "one network pass" in policy.check_num_steps(steps)
+    with pytest.raises(ValueError, match="num_steps does not apply: policy 'flow' samples a chunk in one network pass"):
+        acting.load_policy(MODELS / model, num_steps=4)
+    # no noise is read: the same actions for any seeds, given noise, or none
+    seeded = policy.act(STATES, seeds=range(9))
+    np.testing.assert_array_equal(seeded, policy.act(STATES, seeds=range(100, 109)))
+    np.testing.assert_array_equal(seeded, policy.act(STATES, noise=row_noise(range(9))))
+    np.testing.assert_array_equal(seeded, policy.act(STATES))
+
+
+def test_a_graph_runs_unpadded_only_where_its_rows_are_the_same_alone_as_in_a_batch(tmp_path):
+    # The shipped student's export found its rows batch-invariant (its big products are exact integer ones): no padding
+    # wherever this machine's ONNX Runtime agrees on load (its float32 kernels may differ on another CPU).
+    shipped = acting.load_policy(MODELS / "flow.onnx")
+    assert acting.read_card(MODELS / "flow").data["onnx"]["batch_invariant"] is True
+    assert shipped.batch_multiple == (1 if shipped._invariant_here() else 4)
+    assert acting.load_policy(MODELS / "flow").batch_multiple == 4  # torch's float products: padded as ever
+    # mse's float products round a full group of four rows differently: its export says so, and a card claiming otherwise
+    # is checked where it loads, so it stays padded
+    assert acting.read_card(MODELS / "mse").data["onnx"].get("batch_invariant") is not True
+    card = _copy(tmp_path, "mse")
+    data = json.loads(card.read_text())
+    data["onnx"]["batch_invariant"] = True
+    card.write_text(json.dumps(data))
+    claimed = acting.load_policy(tmp_path / "mse.onnx")
+    assert claimed.batch_multiple == 4
+    many = np.random.default_rng(8).uniform(0, 512, (37, 5)).astype(np.float32)
+    alone = np.concatenate([claimed.act(many[i : i + 1]) for i in range(37)])
+    np.testing.assert_array_equal(alone, claimed.act(many))
 
 
 def _copy(tmp_path: Path, name: str = "flow") -> Path:
@@ -124,8 +166,8 @@ def test_a_flow_whose_start_noise_is_scaled_to_zero_draws_none(tmp_path):
         policy.act(STATES, seeds=[1, 2])  # still checked
 
 
-def test_a_rollout_with_a_fixed_noise_gives_every_row_that_seeds_noise():
-    policy = acting.load_policy(MODELS / "flow.onnx")
+def test_a_rollout_with_a_fixed_noise_gives_every_row_that_seeds_noise(chooser_models):
+    policy = acting.load_policy(chooser_models / "flow.onnx")  # the shipped student reads no noise: every row would agree
     fixed = acting.rollout_act(policy, fixed_noise=12345)
     states = np.repeat(STATES[:1], 4, axis=0)
     out = fixed(states, [1, 2, 3, 4])

@@ -71,14 +71,23 @@ def server():
         yield srv
 
 
+@pytest.fixture(scope="module")
+def chooser_server(chooser_models):
+    """The outcome chooser record as `flow`: its actions depend on the seed (the shipped student's do not)."""
+    with UvicornProcess({"PUSHT_MODELS_DIR": str(chooser_models), "PUSHT_API_KEY": KEY}, entry="service") as srv:
+        yield srv
+
+
 def _act(url: str, state: list[float], seed: int) -> list[list[float]]:
     response = httpx.post(f"{url}/act", json={"policy": "flow", "state": state, "seed": seed}, headers={"X-API-Key": KEY})
     assert response.status_code == 200, response.text
     return response.json()["actions"]
 
 
-def test_official_client_gets_the_actions_of_act(openpi_python: str, server: UvicornProcess) -> None:
+@pytest.mark.parametrize("which", ["server", "chooser_server"], ids=["shipped", "chooser"])
+def test_official_client_gets_the_actions_of_act(openpi_python: str, which: str, request: pytest.FixtureRequest) -> None:
     """openpi-client: metadata on connect, the same float32 actions as /act for the same seed, a bad message survived."""
+    server = request.getfixturevalue(which)
     url = f"{server.url.removeprefix('http://')}/openpi/flow"
     run = subprocess.run([openpi_python, "-c", CLIENT, url, KEY, json.dumps(STATES)], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
@@ -91,6 +100,8 @@ def test_official_client_gets_the_actions_of_act(openpi_python: str, server: Uvi
     assert out["answers"][1]["timing"] == ["infer_ms", "prev_total_ms"]
     assert "Error in inference server" in out["bad"] and "'state' must be 5 numbers" in out["bad"]
     assert out["again"] == out["answers"][0]["actions"]
+    # only where another seed moves the actions does the equality with /act check the seed's way through
+    assert np.array_equal(np.float32(_act(server.url, STATES[0], 1001)), np.float32(out["again"])) == (which == "server")
 
 
 def test_bad_messages_get_errors_and_the_connection_stays(server: UvicornProcess) -> None:

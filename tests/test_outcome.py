@@ -21,7 +21,8 @@ from training.policies import build_policy
 from training.selection import orthogonal_maps
 
 REPO = Path(__file__).resolve().parent.parent
-SHIPPED = REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"  # the plain flow inside models/flow
+SHIPPED = REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"  # the plain flow inside the chooser
+CHOOSER = REPO / "records" / "flow-outcome16-stretch" / "last"  # the chooser shipped before its one-pass student
 
 
 def _chooser_from_shipped(candidates: int, dims=(32,), stretches=(1.0,)):
@@ -174,22 +175,22 @@ def test_fine_tuning_a_fine_tuned_flow_is_refused_unless_an_outcome_fit_continue
     from training.finetune_config import FinetuneConfig
 
     with pytest.raises(ValueError, match="fine-tuned already"):
-        finetune(FinetuneConfig(algo="qselect", init="models/flow", name="again", out_dir=str(tmp_path), progress=False))
+        finetune(FinetuneConfig(algo="qselect", init=str(CHOOSER), name="again", out_dir=str(tmp_path), progress=False))
     with pytest.raises(ValueError, match="must match to start from it"):
-        finetune(FinetuneConfig(algo="outcome", init="models/flow", outcome_dims="8", name="again", out_dir=str(tmp_path), progress=False))
-    run = finetune(FinetuneConfig(algo="outcome", init="models/flow", stretches="1,1.5", iterations=1, num_envs=2, rollout_decisions=1,
+        finetune(FinetuneConfig(algo="outcome", init=str(CHOOSER), outcome_dims="8", name="again", out_dir=str(tmp_path), progress=False))
+    run = finetune(FinetuneConfig(algo="outcome", init=str(CHOOSER), stretches="1,1.5", iterations=1, num_envs=2, rollout_decisions=1,
                                   label_envs=1, eval_every=0, batch_size=8, learning_starts=8, name="warm", out_dir=str(tmp_path), progress=False))
     policy, card = load_checkpoint(str(run.dir / "last"))
-    shipped, _ = load_checkpoint(str(REPO / "models" / "flow"))
+    chooser, _ = load_checkpoint(CHOOSER)
     assert card["architecture"]["outcome_stretches"] == [1.0, 1.5] and policy.outcome.choices == 32
-    # the fit starts from the shipped chooser's model (one iteration moves it only a little) and leaves the flow as it was
-    before, after = shipped.state_dict(), policy.state_dict()
+    # the fit starts from the chooser's model (one iteration moves it only a little) and leaves the flow as it was
+    before, after = chooser.state_dict(), policy.state_dict()
     assert all(torch.equal(before[k], after[k]) for k in before if not k.startswith("outcome."))
     k = policy.outcome.candidates  # the candidate maps are the configured count's, the first ones the same for every count
     assert k == 16 and torch.equal(after["outcome.rotations"], orthogonal_maps(64, 24)[:k])
-    # the shipped maps came from another machine's QR: the same maps, to its float rounding
+    # the chooser's saved maps came from another machine's QR: the same maps, to its float rounding
     torch.testing.assert_close(after["outcome.rotations"], before["outcome.rotations"][:k], rtol=0, atol=1e-5)
-    start = shipped.outcome.model.net[0].weight
+    start = chooser.outcome.model.net[0].weight
     assert (policy.outcome.model.net[0].weight - start).abs().max() < 0.05 * start.abs().max()
 
 

@@ -1,8 +1,8 @@
 """Scheduling: small requests are not starved by bulk ones, gone clients' work is dropped, queues count cost.
 
 The batcher in process (which call answers whom), then a real uvicorn on loopback with the shipped
-flow (717k parameters, so bulk batches take real time). Orders and counts are asserted, never speed:
-bench/service_fairness.py measures the latencies.
+flow (bulk batches span many model calls), and the outcome chooser record where step counts matter. Orders
+and counts are asserted, never speed: bench/service_fairness.py measures the latencies.
 """
 
 from __future__ import annotations
@@ -101,11 +101,13 @@ async def _answer(reader: asyncio.StreamReader) -> int:
 
 @pytest.mark.slow
 def test_small_request_overtakes_queued_bulk_batches_on_a_real_server() -> None:
-    """Eight 256-row flow requests queued first, then a 1-row one: its answer comes before every bulk answer."""
+    """Eight 1,024-row flow requests queued first, then a 1-row one: its answer comes before every bulk answer."""
     with UvicornProcess({"PUSHT_MODELS_DIR": str(_shipped())}) as srv:
         async def scenario() -> list[str]:
             order: list[str] = []
-            bulk_body = {"policy": "flow", "states": [STATE] * 256, "seed": 1}
+            # At 2 network evaluations a row the shipped flow fits 320 rows in a call: a smaller bulk request could be
+            # answered whole by the call already running when the small one arrives.
+            bulk_body = {"policy": "flow", "states": [STATE] * 1024, "seed": 1}
             bulk = [await _send(srv.port, bulk_body) for _ in range(8)]
             await asyncio.sleep(0.05)  # the bulk bodies are parsed and queued
             small = await _send(srv.port, {"policy": "flow", "state": STATE, "seed": 2})
@@ -151,9 +153,10 @@ def test_work_of_clients_that_hung_up_is_dropped() -> None:
 
 
 @pytest.mark.slow
-def test_torch_queue_limit_counts_num_steps() -> None:
+def test_torch_queue_limit_counts_num_steps(chooser_models: Path) -> None:
     """torch backend, 4-row requests: at num_steps=100 a burst overflows the cost limit (503); at 10 it fits."""
-    env = {"PUSHT_MODELS_DIR": str(_shipped()), "PUSHT_BACKEND": "torch", "PUSHT_MAX_STATES": "4", "PUSHT_QUEUE_LIMIT": "1"}
+    # the shipped student has no steps to count: the chooser it was distilled from has
+    env = {"PUSHT_MODELS_DIR": str(chooser_models), "PUSHT_BACKEND": "torch", "PUSHT_MAX_STATES": "4", "PUSHT_QUEUE_LIMIT": "1"}
     with UvicornProcess(env) as srv:  # limit: 32 requests x 4 rows x 10 steps = 1,280 cost units
         def burst(num_steps: int) -> list[tuple[int, bytes]]:
             body = json.dumps({"policy": "flow", "states": [STATE] * 4, "seed": 1, "num_steps": num_steps}).encode()
@@ -167,5 +170,5 @@ def test_torch_queue_limit_counts_num_steps() -> None:
         refused = json.loads(next(body for status, body in costly if status == 503))["detail"]
         from acting import read_card
 
-        unit = read_card(_shipped() / "flow.json").network_evaluations(100)  # 100 steps, times the candidates of a chooser
-        assert "cost units" in refused and f"{unit} here" in refused
+        unit = read_card(chooser_models / "flow.json").network_evaluations(100)  # 100 steps, times the candidates of a chooser
+        assert unit == 64 * 100 + 64 * 4 and "cost units" in refused and f"{unit} here" in refused

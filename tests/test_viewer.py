@@ -33,6 +33,13 @@ def server(tmp_path_factory):
         yield proc
 
 
+@pytest.fixture(scope="module")
+def chooser_server(chooser_models):
+    """The outcome chooser record as `flow`: its episodes depend on each chunk's seed (the shipped student's do not)."""
+    with UvicornProcess({"PUSHT_MODELS_DIR": str(chooser_models)}, entry="service") as proc:
+        yield proc
+
+
 def ws_url(server) -> str:
     return server.url.replace("http://", "ws://") + "/viewer/ws"
 
@@ -58,9 +65,11 @@ def play(ws, policy: str | None, seed: int, fps: float = 200) -> list[dict]:
     return states
 
 
-@pytest.mark.parametrize("policy, seeds", [("flow", (200000, 200003)), ("mse", (200001,))])
-def test_viewer_episode_scores_equal_training_evaluate(server, policy, seeds):
-    in_process = load_policy(SHIPPED_MODELS / f"{policy}.onnx")
+@pytest.mark.parametrize("which, policy, seeds", [("server", "flow", (200000, 200003)), ("server", "mse", (200001,)),
+                                                  ("chooser_server", "flow", (200000,))], ids=["flow", "mse", "chooser"])
+def test_viewer_episode_scores_equal_training_evaluate(which, policy, seeds, request):
+    server = request.getfixturevalue(which)
+    in_process = load_policy(server.models_dir / f"{policy}.onnx")
     ws, hello = session(server)
     assert {"flow", "mse"} <= set(hello["policies"]) and len(hello["goal"]) == 2
     with ws:

@@ -6,6 +6,7 @@ from dataclasses import asdict, dataclass
 
 from pusht.spec import RESERVED_SEEDS
 from training.cli import option
+from training.finetune_config import CHOOSER
 
 __all__ = ["DEFAULT_MULTICHOICE_DIMS", "DEFAULT_ONEPASS_DIMS", "STUDENTS", "DistillConfig"]
 
@@ -18,7 +19,7 @@ DEFAULT_MULTICHOICE_DIMS = "512,512,512"
 class DistillConfig:
     """Everything that defines a distillation run."""
 
-    teacher: str = option("models/flow", "flow checkpoint stem to distil (its noise_scale and steps define the map)")
+    teacher: str = option(CHOOSER, "flow checkpoint stem to distil (its noise_scale and steps define the map): the outcome chooser")
     teacher_steps: int = option(10, "Euler steps of the teacher's sampler")
     student: str = option("flow", "flow: a plain flow sampling in --student-steps Euler steps; one-pass: an outcome chooser's "
                                   "candidates and scores in one network pass (needs --fixed-noise); multichoice: --hypotheses chunks "

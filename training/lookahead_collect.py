@@ -1,6 +1,6 @@
 """Collect episodes from a lookahead teacher: at each decision the flow's best of K chunks, each simulated one chunk ahead.
 
-    python -m training.lookahead_collect --model models/flow --episodes 500 --seed 3000000 --out data/rollouts/lookahead-16.zarr
+    python -m training.lookahead_collect --model records/flow-outcome16-stretch/last --episodes 500 --seed 3000000 --out data/rollouts/lookahead-16.zarr
 
 The teacher is the oracle of ../shared/notes/policy-quality.md (16 candidates lift success from 60 % to
 82 %): it simulates, so it exists at training time only. Its episodes (all of them, or only the
@@ -24,12 +24,13 @@ from pusht.env import MAX_EPISODE_STEPS, PushTEnv
 from pusht.spec import RESERVED_SEEDS, SUCCESS_COVERAGE
 from training.config import HelpFormatter
 from training.data import Replay, save_replay
+from training.finetune_config import CHOOSER
 
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: collect, write the zarr, print one JSON line."""
     parser = argparse.ArgumentParser(prog="python -m training.lookahead_collect", description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
-    parser.add_argument("--model", default="models/flow", help="flow checkpoint stem (or its ONNX file)")
+    parser.add_argument("--model", default=CHOOSER, help="flow checkpoint stem (or its ONNX file; default: the outcome chooser)")
     parser.add_argument("--episodes", type=int, default=500, help="episodes to play")
     parser.add_argument("--seed", type=int, default=3_000_000, help=f"first episode seed (outside the evaluation ranges {RESERVED_SEEDS.start}..{RESERVED_SEEDS.stop - 1})")
     parser.add_argument("--candidates", type=int, default=16, help="chunks simulated per decision")

@@ -63,7 +63,7 @@ class NoiseAgent:
         warm = cfg.algo == "outcome" and learned == ["outcome_dims"]
         if learned and not warm:
             raise ValueError(f"{cfg.init}: this flow was fine-tuned already ({learned[0]} in its architecture); fine-tune a plain flow "
-                             f"(--init {IMITATION_FLOW} is the one inside models/flow)")
+                             f"(--init {IMITATION_FLOW} is the one inside the outcome chooser)")
         if warm and list(arch["outcome_dims"]) != cfg.outcome_dims_list():
             raise ValueError(f"{cfg.init}: its outcome chooser has outcome_dims {arch['outcome_dims']}; --outcome-dims must match to start from it")
         if cfg.algo == "qselect":

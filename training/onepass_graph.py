@@ -58,7 +58,7 @@ class LeanScoredChoice(nn.Module):
         if not _fits(flow):
             raise ValueError("a lean graph needs a scoring student of the shipped flows' inputs (see lean_graph)")
         head = flow.onepass
-        self.k, self.chunk_shape, self.scored, self.top = head.candidates, head.chunk_shape, head.scored, head.scorer_top
+        self.k, self.chunk_shape, self.top = head.candidates, head.chunk_shape, head.scorer_top
         self.stretch_count = len(head.scorer_stretches)
         self.register_buffer("stretches", torch.tensor(head.scorer_stretches, dtype=torch.float32))
         targets = 2 * self.chunk_shape[0]
@@ -113,12 +113,12 @@ class LeanScoredChoice(nn.Module):
             actions = torch.gather(actions, 1, best_first[:, :, None].expand(-1, -1, targets))
         # rows @ [[cos, -sin], [sin, cos]] rotate world vectors into the block's frame
         frame = torch.matmul((actions - block[:, None]).reshape(-1, k * self.chunk_shape[0], 2), trig[:, :4].reshape(-1, 2, 2))
-        on_z, goal = torch.split(self.sco[0](z), [self.width, 12], dim=1)
+        on_z, goal = torch.split(self.sco[0](z), [self.width, _CORNER_XY], dim=1)
         h = self._shared_pass(on_z, frame, k) if self.shared else self._side_by_side(on_z, frame)
         corners = torch.addmm(self.sco[-1](h), torch.sin(self.turns(h)), self.turn_corners)  # each choice's moved corners
         if self.shared and self.stretch_count > 1:  # [B, K, S, 12] -> the K at each stretch in turn
-            corners = corners.reshape(-1, k, self.stretch_count, 12).transpose(1, 2)
-        distance = (corners.reshape(-1, k * self.stretch_count, 12) + goal[:, None]).pow(2).sum(dim=2)
+            corners = corners.reshape(-1, k, self.stretch_count, _CORNER_XY).transpose(1, 2)
+        distance = (corners.reshape(-1, k * self.stretch_count, _CORNER_XY) + goal[:, None]).pow(2).sum(dim=2)
         best = first_nearest(distance)
         index = best if self.stretch_count == 1 else torch.remainder(best, k)
         chosen = torch.gather(actions, 1, index[:, None, None].expand(-1, 1, targets)).reshape(-1, *self.chunk_shape)
@@ -153,6 +153,7 @@ class LeanScoredChoice(nn.Module):
 _PHASES = (math.pi / 2, math.pi, 0.0, math.pi / 2) * 2
 _C, _S, _C_DX, _NEG_S_DY, _S_DX, _C_DY, _C_BX, _NEG_S_BY, _S_BX, _C_BY = 5, 7, 13, 14, 15, 16, 17, 18, 19, 20
 _Z = 21
+_CORNER_XY = 2 * len(_CORNERS)
 
 
 def _state_map(agents: int, blocks: int) -> nn.Linear:
@@ -193,7 +194,7 @@ def _goal_map() -> torch.Tensor:
     corner less the block angle's, in the block's frame: a hypothesis's goal distance is |its moved corners + this|^2."""
     gx, gy, ga = GOAL_POSE
     cg, sg = math.cos(ga), math.sin(ga)
-    m = torch.zeros(_Z + 1, 12, dtype=torch.float64)
+    m = torch.zeros(_Z + 1, _CORNER_XY, dtype=torch.float64)
     for k, (kx, ky) in enumerate(_CORNERS):
         x, y = 2 * k, 2 * k + 1
         # rotated into the block's frame, the block less the goal: (c (bx - gx) + s (by - gy), -s (bx - gx) + c (by - gy))
@@ -209,7 +210,7 @@ def _goal_map() -> torch.Tensor:
 
 def _corner_maps() -> tuple[torch.Tensor, torch.Tensor]:
     """[2, 12] each: a move (x, y) and a turn's [cos, sin] to where they put each tee corner, in the block's frame."""
-    moves, turns = torch.zeros(2, 12, dtype=torch.float64), torch.zeros(2, 12, dtype=torch.float64)
+    moves, turns = torch.zeros(2, _CORNER_XY, dtype=torch.float64), torch.zeros(2, _CORNER_XY, dtype=torch.float64)
     for k, (kx, ky) in enumerate(_CORNERS):
         moves[0, 2 * k], moves[1, 2 * k + 1] = 1.0, 1.0
         turns[0, 2 * k], turns[0, 2 * k + 1], turns[1, 2 * k], turns[1, 2 * k + 1] = kx, ky, -ky, kx
