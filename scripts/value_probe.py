@@ -2,13 +2,13 @@
 
     python scripts/value_probe.py --collect 6000 --episodes 500 --seed 300000
 
-The outcome chooser (`records/flow-outcome16-stretch`, shipped before its one-pass student) scores a candidate chunk by how close its predicted end pose of the
-block lies to the goal: one chunk deep, blind to where the agent ends. This probe plays the chooser on
-training seeds (from 21,000,000), fits V(state) = E[gamma^(chunks until success)] (0 if the episode
-fails) on the states it visits, then plays episodes choosing by V of each candidate's predicted next
-state (the model's block pose, the agent at the chunk's last target) and, on the same seeds, by the
-corner distance, in one torch loop (no ONNX tie margin in either). Tuning seeds only (default
-300000); prints one JSON line. A probe: it measures a criterion, it ships nothing.
+The outcome chooser (`records/flow-outcome16-stretch`, shipped before its one-pass student) scores a
+candidate chunk by how close its predicted end pose of the block lies to the goal: one chunk deep, blind
+to where the agent ends. This probe plays the chooser on training seeds (from 21,000,000), fits
+V(state) = E[gamma^(chunks until success)] (0 if the episode fails) on the states it visits, then plays
+episodes choosing by V of each candidate's predicted next state (the model's block pose, the agent at the
+chunk's last target) and, on the same seeds, by the corner distance, in one torch loop (no ONNX tie
+margin in either). Tuning seeds only (default 300000); prints one JSON line. A probe: it measures a criterion, it ships nothing.
 """
 
 from __future__ import annotations

@@ -19,6 +19,8 @@ import time
 import numpy as np
 import torch
 
+from training.outcome import FEATURE_STATE, FEATURE_TARGETS
+
 __all__ = ["hypothesis_changes", "outcome_scorer", "save_states", "train_scorer"]
 
 LABEL_BATCH = 4096
@@ -82,7 +84,7 @@ def outcome_scorer(student, teacher, state_n: torch.Tensor) -> None:
     keep = [torch.arange(f) for f in full] if widths == full else _most_active(student, model, layers, widths, state_n)
     scorer.state.weight.copy_(on_state[keep[0]])
     scorer.state.bias.copy_(bias[keep[0]])
-    scorer.chunk.weight.copy_(layers[0].weight[keep[0]][:, _TARGETS])
+    scorer.chunk.weight.copy_(layers[0].weight[keep[0]][:, FEATURE_TARGETS])
     for mine, theirs, rows, columns in zip(scorer.hidden, layers[1:-1], keep[1:], keep[:-1]):
         mine.weight.copy_(theirs.weight[rows][:, columns])
         mine.bias.copy_(theirs.bias[rows])
@@ -100,11 +102,11 @@ def _first_layer_on_features(student, model, first) -> tuple[torch.Tensor, torch
     noise = torch.randn(1024, len(normalizer.state_mean), generator=torch.Generator().manual_seed(0))
     state = normalizer.state_mean + normalizer.state_std * noise
     ours = torch.cat([head_features(student, student.policy_state(state)), torch.ones(len(state), 1)], dim=1).double()
-    theirs = model.features(state, torch.zeros(len(state), *student.onepass.chunk_shape))[:, _STATE].double()
+    theirs = model.features(state, torch.zeros(len(state), *student.onepass.chunk_shape))[:, FEATURE_STATE].double()
     solution = torch.linalg.pinv(ours) @ theirs  # [F + 1, 6]; least squares, rank-deficient (the corners follow from the pose)
     if (ours @ solution - theirs).abs().max() > 1e-6:
         raise ValueError("the second pass's features do not carry the outcome model's view of the state")
-    weight = first.weight[:, _STATE].double()
+    weight = first.weight[:, FEATURE_STATE].double()
     return (weight @ solution[:-1].T).float(), (first.bias.double() + weight @ solution[-1]).float()
 
 
@@ -119,11 +121,6 @@ def _most_active(student, model, layers, widths: list[int], state_n: torch.Tenso
         h = F.silu(layer(h))
         keep.append((h.abs().mean(dim=0) * after.weight.norm(dim=0)).topk(width).indices.sort().values)
     return keep
-
-
-_TARGETS = slice(2, -4)
-"""the columns of `OutcomeModel.features` that hold the chunk's targets; the rest (`_STATE`) see the state"""
-_STATE = [0, 1, -4, -3, -2, -1]
 
 
 def save_states(path, state_n: torch.Tensor, teacher: str) -> None:

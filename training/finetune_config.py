@@ -19,7 +19,7 @@ RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_e
 ALGOS = ("ppo", "qselect", "outcome")
 # The imitation flow that the outcome chooser chooses among the chunks of: the same weights, as a plain flow checkpoint.
 IMITATION_FLOW = "records/flow-agentframe-padend-150k-noise0.3/last"
-# The outcome chooser (16 candidates x 10 flow steps at 4 stretches), shipped as models/flow before the one-pass student
+# The outcome chooser (64 candidates x 10 flow steps, each at 4 stretches), shipped as models/flow before the one-pass student
 # distilled from it: the teacher of distillation and what the chooser's probes and fine-tuning start from.
 CHOOSER = "records/flow-outcome16-stretch/last"
 

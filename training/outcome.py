@@ -27,7 +27,7 @@ from training.features import tee_keypoints
 from training.networks import silu_mlp
 from training.selection import candidate_starts, orthogonal_maps
 
-__all__ = ["OutcomeModel", "OutcomeSelector", "agent_in_block_frame", "goal_corner_distance", "nearest", "pose_after", "stretch", "targets_in_block_frame"]
+__all__ = ["FEATURE_STATE", "FEATURE_TARGETS", "OutcomeModel", "OutcomeSelector", "agent_in_block_frame", "goal_corner_distance", "nearest", "pose_after", "stretch", "targets_in_block_frame"]
 
 DEFAULT_OUTCOME_DIMS = (512, 512, 512, 512)
 DEFAULT_OUTCOME_CANDIDATES = 16
@@ -36,6 +36,12 @@ _ARENA_CENTER = 256.0  # px: the block's own position (walls), to about [-1, 1]
 # The targets' units (px, px, rad): a push moves the block by some px and some hundredths of a radian.
 _POSE_SCALE = (10.0, 10.0, 0.1)
 TIE_MARGIN = 1e-3  # relative: a candidate replaces the flow's own sample only if predicted this much closer to the goal
+
+
+FEATURE_TARGETS = slice(2, -4)
+"""the columns of `OutcomeModel.features` that hold the chunk's targets (after the agent's 2, before the block's 4)"""
+FEATURE_STATE = [0, 1, -4, -3, -2, -1]
+"""the other columns: the agent in the block's frame, the block's place and heading"""
 
 
 class OutcomeModel(nn.Module):
