@@ -63,10 +63,10 @@ class OnnxPolicy(Policy):
 
     def _invariant_here(self) -> bool:
         """`batch_invariant` on 16 fixed states (and noises) spread over the arena, in this process's ONNX Runtime."""
-        rng = np.random.default_rng(0)
-        states = rng.uniform(0, 512, (16, self.state_dim)).astype(np.float32)
-        states[:, -1] = rng.uniform(0, 2 * np.pi, 16)
-        noise = rng.standard_normal((16, self.horizon, self.action_dim), dtype=np.float32) if self.kind == "flow" else None
+        states = self.probe_states(16)
+        noise = None
+        if self.kind == "flow":
+            noise = np.random.default_rng(1).standard_normal((16, self.horizon, self.action_dim), dtype=np.float32)
         return batch_invariant(lambda s, n: self._run(s, s if self.takes_prev_state else None, n, None), states, noise)
 
     def check_num_steps(self, num_steps: int) -> str | None:

@@ -91,9 +91,7 @@ class Policy:
 
     def check_outputs(self) -> None:
         """One call on 8 fixed states: CardError naming the file on a wrong shape or a non-finite output (broken weights)."""
-        rng = np.random.default_rng(0)
-        states = rng.uniform(0, 512, (8, self.state_dim)).astype(np.float32)
-        states[:, -1] = rng.uniform(0, 2 * np.pi, 8)
+        states = self.probe_states(8)
         states[0] = 256.0
         where = self.card.onnx_path if self.backend == "onnx" else self.card.stem.with_suffix(".safetensors")
         try:
@@ -105,6 +103,13 @@ class Policy:
             raise CardError(f"{where}: returns shape {list(out.shape)}, its card says [B, {self.horizon}, {self.action_dim}]")
         if not np.isfinite(out).all():
             raise CardError(f"{where}: test output is not finite (NaN or inf): broken weights")
+
+    def probe_states(self, rows: int) -> np.ndarray:
+        """`rows` fixed float32 states spread over the arena (the last dimension an angle), for checks at load time."""
+        rng = np.random.default_rng(0)
+        states = rng.uniform(0, 512, (rows, self.state_dim)).astype(np.float32)
+        states[:, -1] = rng.uniform(0, 2 * np.pi, rows)
+        return states
 
     def _zero_noise(self, rows: int) -> np.ndarray:
         """Read-only zero noise [rows, horizon, action_dim], kept for small batches (a service's usual calls)."""

@@ -61,11 +61,10 @@ class LeanScoredChoice(nn.Module):
         self.k, self.chunk_shape, self.top = head.candidates, head.chunk_shape, head.scorer_top
         self.stretch_count = len(head.scorer_stretches)
         self.register_buffer("stretches", torch.tensor(head.scorer_stretches, dtype=torch.float32))
-        targets = 2 * self.chunk_shape[0]
+        self.targets = targets = 2 * self.chunk_shape[0]  # a chunk's targets' coordinates
         self.shared = isinstance(head.scorer, SharedScorer)
         with torch.no_grad():
-            self.state_map = _state_map(self.k * targets, targets)
-            self.parts = [8, 8, self.k * targets, targets]
+            self.state_map, self.parts = _state_map(self.k * targets, targets)
             linear = _feature_map(flow)  # features [20] = z [21] @ linear[:21] + linear[21]
             gen = [m for m in head.net if isinstance(m, nn.Linear)]
             last = _fold_actions(gen[-1], flow, head)
@@ -102,7 +101,7 @@ class LeanScoredChoice(nn.Module):
         h = z
         for layer in self.gen[:-1]:
             h = nn.functional.silu(layer(h))
-        targets = 2 * self.chunk_shape[0]
+        targets = self.targets
         out = self.gen[-1](h)
         if self.top:
             out, ranking = torch.split(out, [self.k * targets, self.ranked], dim=1)
@@ -136,7 +135,7 @@ class LeanScoredChoice(nn.Module):
 
     def _shared_pass(self, on_z: torch.Tensor, frame: torch.Tensor, k: int) -> torch.Tensor:
         """The shared pass's last hidden layer [B * k, W] over k hypotheses, each a row so that every layer is one plain product."""
-        first = self.frame(frame.reshape(-1, 2 * self.chunk_shape[0]))
+        first = self.frame(frame.reshape(-1, self.targets))
         h = nn.functional.silu((first.reshape(-1, k, self.width) + on_z[:, None]).reshape(-1, self.width))
         for i, layer in enumerate(self.sco[1:-1]):
             if self.context is None:  # each hypothesis alone
@@ -156,9 +155,11 @@ _Z = 21
 _CORNER_XY = 2 * len(_CORNERS)
 
 
-def _state_map(agents: int, blocks: int) -> nn.Linear:
-    """State [B, 5] -> [phases (8), sources (8), the agent tiled `agents` / 2 times, the block tiled `blocks` / 2 times]."""
-    m, b = torch.zeros(16 + agents + blocks, 5), torch.zeros(16 + agents + blocks)
+def _state_map(agents: int, blocks: int) -> tuple[nn.Linear, list[int]]:
+    """State [B, 5] -> [phases (8), sources (8), the agent tiled `agents` / 2 times, the block tiled `blocks` / 2 times],
+    and those parts' widths."""
+    parts = [8, 8, agents, blocks]
+    m, b = torch.zeros(sum(parts), 5), torch.zeros(sum(parts))
     m[:8, 4], b[:8] = 1.0, torch.tensor(_PHASES)
     for j, (x, y) in enumerate([(0, 2), (1, 3), (0, 2), (1, 3)]):
         m[8 + j, x], m[8 + j, y] = 1.0, -1.0
@@ -168,7 +169,7 @@ def _state_map(agents: int, blocks: int) -> nn.Linear:
         m[16 + j, j % 2] = 1.0
     for j in range(blocks):
         m[16 + agents + j, 2 + j % 2] = 1.0
-    return _linear(m, b)
+    return _linear(m, b), parts
 
 
 def _feature_map(flow: nn.Module) -> torch.Tensor:

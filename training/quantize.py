@@ -36,7 +36,8 @@ weights keep to -63..63, half the resolution (the outcome model's layers then ch
 LAYER_WEIGHT = re.compile(r"(^|\.)(gen|sco)\.([0-9]+)\.weight$")
 """the weights of `training.onepass_graph.LeanScoredChoice`'s layers: its generator's (gen.i) and scoring pass's (sco.i)"""
 PARTS = ("gen", "sco")
-"""what `quantize_hidden` may take to int8: the generator's hidden layers, the scoring pass's"""
+"""what `quantize_hidden` takes to int8 unless told otherwise: the generator's hidden layers, the scoring pass's (`frame`
+only when named)"""
 FRAME_WEIGHT = re.compile(r"(^|\.)frame\.weight$")
 """the scoring pass's first layer's part on the hypotheses' targets in the block's frame (signed pixels)"""
 
