@@ -1,0 +1,320 @@
+"""Run a recipe: the ordered stages that make one shipped policy, from the demonstrations to `models/`.
+
+    python -m training.recipe recipes/flow.toml
+    python -m training.recipe recipes/flow.toml --scale 0.01 --out-dir runs/smoke --models-dir runs/smoke/models \\
+        --records-dir runs/smoke/records                      # a smoke run in minutes; models/ untouched
+
+A recipe file (TOML) names the policy it ships and lists its `[[stage]]`s. Each stage has a `name`, a
+`run` (train, finetune or ship), optionally `from` (the stage whose checkpoint it takes; default the
+previous one) and `acting` (sampling settings written on its output checkpoint, such as noise_scale),
+and only the settings that differ from that command's defaults. A stage's output is cached in
+OUT_DIR/STAGE-KEY, KEY a hash of its settings and its inputs: a second run is all cached, a
+changed stage reruns with the stages after it. A stopped stage (SIGTERM, SIGINT) resumes on the next
+run. The shipped card cites the recipe file and its sha256, the commit, and every stage's wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import sys
+import time
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from training.cli import HelpFormatter
+
+__all__ = ["Recipe", "Stage", "load_recipe", "main", "run_recipe"]
+
+STAGE_RUNS = ("train", "finetune", "ship")
+ACTING_KEYS = ("noise_scale", "outcome_candidates")
+# per stage kind: the settings --scale shrinks (counts of steps, iterations, episodes and the intervals between them)
+SCALED = {
+    "train": ("steps", "eval_every", "eval_episodes", "checkpoint_every", "log_every"),
+    "finetune": ("iterations", "eval_every", "eval_episodes", "checkpoint_every", "learning_starts", "log_every"),
+    "ship": ("episodes",),
+}
+# settings a stage never takes from the recipe: the runner owns them
+RUNNER_OWNED = ("name", "out_dir", "resume", "overwrite", "progress", "init", "run", "models_dir", "records_dir")
+DONE_FILE = "stage.json"
+
+
+@dataclass
+class Stage:
+    """One step of a recipe: what runs, on which earlier stage's checkpoint, with which settings."""
+
+    name: str
+    run: str
+    settings: dict[str, Any]
+    source: str | None = None
+    acting: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Recipe:
+    """A shipped policy's stages, read from a recipe file."""
+
+    path: Path
+    policy: str
+    description: str
+    stages: list[Stage]
+
+    @property
+    def sha256(self) -> str:
+        return hashlib.sha256(self.path.read_bytes()).hexdigest()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point: 0 when every stage finished, 2 on a bad recipe or setting, 128 + N when stopped by signal N."""
+    parser = argparse.ArgumentParser(prog="python -m training.recipe", description=__doc__.splitlines()[0],
+                                     formatter_class=HelpFormatter)
+    parser.add_argument("recipe", help="the recipe file, e.g. recipes/flow.toml")
+    parser.add_argument("--scale", type=float, default=1.0, help="multiply every stage's steps, iterations and episodes by this (0.01: a smoke run)")
+    parser.add_argument("--out-dir", default="runs/recipes", help="where stage outputs are cached")
+    parser.add_argument("--models-dir", default="models", help="where the ship stage writes the policy")
+    parser.add_argument("--records-dir", default="records", help="where the ship stage writes the run's small evidence")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads of every stage (default: each stage's own)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = parser.parse_args(argv)
+    if not 0 < args.scale <= 1:
+        parser.error(f"--scale must be in (0, 1], got {args.scale}")
+    try:
+        recipe = load_recipe(Path(args.recipe))
+        options = RunOptions(Path(args.out_dir), Path(args.models_dir), Path(args.records_dir), args.scale, args.threads,
+                             not args.no_progress)
+        results = run_recipe(recipe, options)
+    except (RecipeError, ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(summary_table(results))
+    stopped = [r for r in results if r.exit_code]
+    if stopped:
+        print(f"stopped in stage {stopped[0].stage}; run the same command again to resume it", file=sys.stderr)
+        return stopped[0].exit_code
+    return 0
+
+
+class RecipeError(ValueError):
+    """A recipe file that cannot be run: the message names the file and the problem."""
+
+
+@dataclass
+class RunOptions:
+    """Where a recipe run writes and how much of each stage it runs."""
+
+    out_dir: Path
+    models_dir: Path
+    records_dir: Path
+    scale: float = 1.0
+    threads: int | None = None
+    progress: bool = True
+
+
+@dataclass
+class StageResult:
+    """What a stage left: its folder, its cache key, its wall time, whether it was cached, its score."""
+
+    stage: str
+    run: str
+    key: str
+    dir: Path
+    wall_time_s: float
+    cached: bool
+    score: dict[str, Any] | None
+    exit_code: int = 0
+
+    def as_card(self) -> dict[str, Any]:
+        return {"name": self.stage, "run": self.run, "key": self.key, "wall_time_s": round(self.wall_time_s, 1), "score": self.score}
+
+
+def load_recipe(path: Path) -> Recipe:
+    """Parse and check a recipe file; RecipeError naming the file and the problem."""
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise RecipeError(f"{path}: recipe file not found") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise RecipeError(f"{path}: not valid TOML: {exc}") from None
+    unknown = set(data) - {"policy", "description", "stage"}
+    if unknown:
+        raise RecipeError(f"{path}: unknown top-level keys {sorted(unknown)} (policy, description, stage)")
+    if not isinstance(data.get("policy"), str) or not data["policy"]:
+        raise RecipeError(f"{path}: needs `policy = \"NAME\"`, the name it ships as")
+    raw = data.get("stage")
+    if not isinstance(raw, list) or not raw:
+        raise RecipeError(f"{path}: needs at least one [[stage]]")
+    stages: list[Stage] = []
+    for index, table in enumerate(raw):
+        stages.append(_parse_stage(path, index, dict(table), [s.name for s in stages]))
+    if stages[-1].run != "ship":
+        raise RecipeError(f"{path}: the last stage must be `run = \"ship\"`")
+    return Recipe(path, data["policy"], str(data.get("description", "")), stages)
+
+
+def _parse_stage(path: Path, index: int, table: dict[str, Any], earlier: list[str]) -> Stage:
+    where = f"{path}: stage {index + 1}"
+    name, run = table.pop("name", None), table.pop("run", None)
+    if not isinstance(name, str) or not name.replace("-", "").replace("_", "").isalnum():
+        raise RecipeError(f"{where}: needs a `name` of letters, digits, - and _")
+    if name in earlier:
+        raise RecipeError(f"{where}: the name {name!r} is used twice")
+    if run not in STAGE_RUNS:
+        raise RecipeError(f"{where} ({name}): `run` must be one of {STAGE_RUNS}, got {run!r}")
+    source = table.pop("from", earlier[-1] if earlier else None)
+    if run != "train" and source not in earlier:
+        raise RecipeError(f"{where} ({name}): `from` must name an earlier stage, got {source!r}")
+    acting = table.pop("acting", {})
+    if not isinstance(acting, dict) or set(acting) - set(ACTING_KEYS):
+        raise RecipeError(f"{where} ({name}): `acting` takes only {ACTING_KEYS}")
+    owned = sorted(set(table) & set(RUNNER_OWNED))
+    if owned:
+        raise RecipeError(f"{where} ({name}): {owned} are set by the recipe runner, not the recipe")
+    allowed = _settings_fields(run)
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise RecipeError(f"{where} ({name}): unknown settings for `run = \"{run}\"`: {unknown}")
+    return Stage(name, run, table, source if run != "train" else None, acting)
+
+
+def _settings_fields(run: str) -> set[str]:
+    if run == "train":
+        from training.config import TrainConfig
+
+        return {f.name for f in fields(TrainConfig)}
+    if run == "finetune":
+        from training.finetune_config import FinetuneConfig
+
+        return {f.name for f in fields(FinetuneConfig)}
+    return {"episodes", "envs", "int8", "seed"}
+
+
+def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
+    """Run (or take from the cache) every stage in order; stops after a stage that was stopped by a signal."""
+    from training.checkpoint import git_commit
+
+    commit = git_commit()
+    results: dict[str, StageResult] = {}
+    for index, stage in enumerate(recipe.stages, 1):
+        settings = scaled(stage, options.scale)
+        source = results[stage.source] if stage.source else None
+        key = stage_key(stage, settings, source, options.scale)
+        stage_dir = options.out_dir / f"{stage.name}-{key}"  # recipes that share a stage share its folder
+        print(f"[{index}/{len(recipe.stages)}] {stage.name} ({stage.run}) -> {stage_dir}", file=sys.stderr, flush=True)
+        result = _cached(stage, key, stage_dir, options.models_dir / f"{recipe.policy}.json")
+        if result is None:
+            result = _run_stage(recipe, stage, settings, source, stage_dir, key, options, list(results.values()), commit)
+        results[stage.name] = result
+        if result.exit_code:
+            break
+    return list(results.values())
+
+
+def scaled(stage: Stage, scale: float) -> dict[str, Any]:
+    """The stage's settings with its counts multiplied by `scale` (at least 1 each)."""
+    from training.config import TrainConfig
+    from training.finetune_config import FinetuneConfig
+
+    defaults = {"train": TrainConfig, "finetune": FinetuneConfig}.get(stage.run)
+    settings = dict(stage.settings)
+    if scale == 1:
+        return settings
+    for name in SCALED[stage.run]:
+        value = settings.get(name, _default(defaults, name) if defaults else SHIP_DEFAULTS[name])
+        if value > 0:
+            settings[name] = max(1, round(value * scale))
+    return settings
+
+
+SHIP_DEFAULTS = {"episodes": 500, "envs": ["pusht", "gym-pusht"], "int8": False, "seed": None}
+
+
+def _default(cls: type, name: str) -> Any:
+    return next(f.default for f in fields(cls) if f.name == name)
+
+
+def stage_key(stage: Stage, settings: dict[str, Any], source: StageResult | None, scale: float) -> str:
+    """A hash of what the stage computes from: its kind, settings, acting settings and its input (a stage's key or the data)."""
+    inputs: dict[str, Any] = {"from": source.key if source else None}
+    if stage.run == "train":
+        inputs["data"] = tree_sha256(Path(settings.get("data", "data/pusht_lowdim.zarr")))
+    text = json.dumps({"run": stage.run, "settings": settings, "acting": stage.acting, "inputs": inputs, "scale": scale},
+                      sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def tree_sha256(path: Path) -> str:
+    """sha256 over a file or a folder's files (relative names and bytes), so a changed dataset changes the stage keys."""
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: the training data is missing")
+    digest = hashlib.sha256()
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    for file in files:
+        digest.update(str(file.relative_to(path) if file != path else file.name).encode())
+        digest.update(file.read_bytes())
+    return digest.hexdigest()
+
+
+def _cached(stage: Stage, key: str, stage_dir: Path, shipped_card: Path) -> StageResult | None:
+    """The stage's result if its folder holds a finished run of the same key (ship: and the shipped card is its output)."""
+    done = stage_dir / DONE_FILE
+    if not done.is_file():
+        return None
+    record = json.loads(done.read_text())
+    if record.get("key") != key:
+        return None
+    if stage.run == "ship" and not _shipped_by(shipped_card, key):
+        return None
+    print(f"  cached ({record['wall_time_s']:.0f} s when it ran)", file=sys.stderr)
+    return StageResult(stage.name, stage.run, key, stage_dir, record["wall_time_s"], True, record.get("score"))
+
+
+def _shipped_by(card: Path, key: str) -> bool:
+    try:
+        stages = json.loads(card.read_text()).get("stages") or [{}]
+    except (OSError, ValueError):
+        return False
+    return stages[-1].get("key") == key
+
+
+def _run_stage(recipe: Recipe, stage: Stage, settings: dict[str, Any], source: StageResult | None, stage_dir: Path, key: str,
+               options: RunOptions, before: list[StageResult], commit: str) -> StageResult:
+    from training import recipe_stages
+
+    runner = {"train": recipe_stages.train, "finetune": recipe_stages.finetune, "ship": recipe_stages.ship}[stage.run]
+    context = recipe_stages.StageContext(recipe, stage, settings, source.dir if source else None, stage_dir, options, before,
+                                         commit, key)
+    started = time.perf_counter()
+    outcome = runner(context)
+    wall = outcome.wall_time_s if outcome.wall_time_s is not None else time.perf_counter() - started
+    result = StageResult(stage.name, stage.run, key, stage_dir, wall, False, outcome.score, outcome.exit_code)
+    if not outcome.exit_code:
+        record = {"key": key, "stage": stage.name, "run": stage.run, "wall_time_s": wall, "score": outcome.score, "git_commit": commit}
+        (stage_dir / DONE_FILE).write_text(json.dumps(record, indent=2) + "\n")
+    return result
+
+
+def summary_table(results: list[StageResult]) -> str:
+    """The end-of-run table: stage, kind, wall time, cached or run, score."""
+    lines = ["| stage | run | wall time | cached | score |", "| --- | --- | --- | --- | --- |"]
+    for r in results:
+        status = "stopped" if r.exit_code else ("cached" if r.cached else "ran")
+        lines.append(f"| {r.stage} | {r.run} | {r.wall_time_s:.0f} s | {status} | {format_score(r.score)} |")
+    total = sum(r.wall_time_s for r in results)
+    lines.append(f"| total | | {total:.0f} s | | |")
+    return "\n".join(lines)
+
+
+def format_score(score: dict[str, Any] | None) -> str:
+    if not score:
+        return "-"
+    first, last = score["seeds"]
+    return (f"{100 * score['success_rate']:.1f} % success, {score['mean_max_reward']:.3f} mean max reward "
+            f"({score['episodes']} episodes, seeds {first}..{last}{', ' + score['env'] if 'env' in score else ''})")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
