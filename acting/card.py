@@ -92,13 +92,31 @@ class Card:
     @property
     def uses_noise(self) -> bool:
         """Whether a flow's actions depend on its start noise: not where the card scales it to 0 (a deterministic student)
-        and nothing else reads it (steering, a selector or an outcome chooser map the noise itself); never a one-pass flow."""
+        or an outcome chooser maps it into its candidates; never a one-pass flow."""
         arch = self.architecture
         if self.one_pass:
             return False
-        if self.kind != "flow" or any(arch.get(k) is not None for k in ("steering_dims", "selector_dims", "outcome_dims")):
+        if self.kind != "flow" or arch.get("outcome_dims") is not None:
             return self.kind == "flow"
         return float(arch.get("noise_scale", 1.0)) != 0.0
+
+    @property
+    def computes(self) -> str:
+        """What the policy computes: mse; flow (a flow-matching sampler); flow-chooser (a flow's candidates picked by a learned
+        outcome model); flow-onepass (a one-pass student of a flow)."""
+        arch = self.architecture
+        if self.kind != "flow":
+            return self.kind
+        if self.one_pass:
+            return "flow-onepass"
+        if arch.get("outcome_dims") is not None:
+            return "flow-chooser"
+        return "flow"
+
+    @property
+    def default(self) -> bool:
+        """Whether the card asks to be the service's default policy (its recipe says `default = true`)."""
+        return self.data.get("default") is True
 
     def network_evaluations(self, num_steps: int | None = None) -> int:
         """Network evaluations per chunk: 1 for mse; a flow's step count, and with an outcome chooser over K candidates at

@@ -92,6 +92,7 @@ class ActHandler:
             except ValidationError as exc:
                 raise ServiceError(422, cap_errors(exc.errors(include_url=False, include_input=False, include_context=False))) from None
             name, state, seed, num_steps, rows, seeds = req.policy, req.state, req.seed, req.num_steps, req.states, req.seeds
+        name = name if name is not None else service.default_policy
         batcher = service.batchers.get(name)
         if batcher is None:
             raise ServiceError(404, f"unknown policy {name!r}; loaded policies: {sorted(service.batchers)}")
@@ -134,8 +135,8 @@ class ActHandler:
 _SINGLE_STATE_KEYS = frozenset(("policy", "state", "seed", "num_steps"))
 
 
-def single_state_request(body: bytes) -> tuple[str, list, int | None, int | None] | None:
-    """(policy, state, seed, num_steps) of a valid body of the usual shape, `{"policy", "state"[, "seed"][, "num_steps"]}`;
+def single_state_request(body: bytes) -> tuple[str | None, list, int | None, int | None] | None:
+    """(policy, state, seed, num_steps) of a valid body of the usual shape, `{["policy",] "state"[, "seed"][, "num_steps"]}`;
     None for any other body, which the pydantic request model then accepts or answers with its errors.
 
     It accepts exactly what the model accepts for that shape (numbers as JSON numbers, finite and within +-STATE_LIMIT,
@@ -148,7 +149,7 @@ def single_state_request(body: bytes) -> tuple[str, list, int | None, int | None
     if type(data) is not dict or not _SINGLE_STATE_KEYS.issuperset(data):
         return None
     policy, state, seed, num_steps = data.get("policy"), data.get("state"), data.get("seed"), data.get("num_steps")
-    if type(policy) is not str or not 0 < len(policy) <= 200 or type(state) is not list or len(state) != STATE_DIM:
+    if (policy is not None and (type(policy) is not str or not 0 < len(policy) <= 200)) or type(state) is not list or len(state) != STATE_DIM:
         return None
     for value in state:  # a bool is an int to Python, not to the model
         if (type(value) is not float and type(value) is not int) or not -STATE_LIMIT <= value <= STATE_LIMIT:

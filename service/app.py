@@ -23,7 +23,7 @@ from starlette.applications import Starlette
 from service import protocol
 from service.act import ActFastPath, ActHandler
 from service.request_input import ServiceError, cap_errors, json_error
-from service.backends import ModelLoadError, load_policies
+from service.backends import ModelLoadError, default_policy, load_policies
 from service.batching import Batcher
 from service.guard import HeaderLimit, QuietStartupFailure, Refusal
 from service.metrics import Metrics, MetricsMiddleware
@@ -55,6 +55,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.service = service
         try:
             service.policies = await asyncio.to_thread(load_policies, settings)
+            service.default_policy = default_policy(service.policies, settings.default_policy)
         except ModelLoadError as exc:
             problems.append(str(exc))  # QuietStartupFailure prints it as uvicorn's one error line
             raise
@@ -82,8 +83,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             access.handlers.clear()
         service.ready = True
         log.info(
-            "ready: %d policies (%s) on the %s backend from %s",
-            len(service.policies), ", ".join(sorted(service.policies)), settings.backend, settings.models_dir,
+            "ready: %d policies (%s; default %s) on the %s backend from %s",
+            len(service.policies), ", ".join(sorted(service.policies)), service.default_policy, settings.backend, settings.models_dir,
         )
         try:
             yield

@@ -18,7 +18,7 @@ from acting import CardError, Policy, load_policy
 from pusht.spec import STATE_DIM
 from service.settings import Settings
 
-__all__ = ["LoadedPolicy", "ModelLoadError", "load_policies", "load_served_policy"]
+__all__ = ["LoadedPolicy", "ModelLoadError", "default_policy", "load_policies", "load_served_policy"]
 
 log = logging.getLogger("service.backends")
 
@@ -30,6 +30,19 @@ CARD_HINT = "every *.json in the models dir must be a policy card (name, kind, o
 
 class ModelLoadError(RuntimeError):
     """A policy file is missing or unusable; the message starts with the file's path."""
+
+
+def default_policy(policies: dict[str, Policy], preferred: str = "") -> str:
+    """The policy a request without a name gets: `preferred` (PUSHT_DEFAULT_POLICY) if set, else the one whose card says
+    `default`, else the first name in order; ModelLoadError if `preferred` or several cards' flags leave it unclear."""
+    if preferred:
+        if preferred not in policies:
+            raise ModelLoadError(f"PUSHT_DEFAULT_POLICY={preferred!r} is not a loaded policy; loaded: {sorted(policies)}")
+        return preferred
+    flagged = sorted(name for name, policy in policies.items() if policy.card.default)
+    if len(flagged) > 1:
+        raise ModelLoadError(f"cards {flagged} each say `default`: keep one, or set PUSHT_DEFAULT_POLICY")
+    return flagged[0] if flagged else min(policies)
 
 
 def load_policies(settings: Settings) -> dict[str, Policy]:

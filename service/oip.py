@@ -70,6 +70,9 @@ def oip_error(status: int, detail: Any, headers: dict[str, str] | None = None) -
     return Response(orjson.dumps({"error": message, "detail": detail}), status_code=status, media_type="application/json", headers=headers)
 
 
+DEFAULT_ALIAS = "default"
+
+
 def make_oip_router(settings: Settings) -> APIRouter:
     """The OIP v2 routes under /v2."""
     router = APIRouter(prefix="/v2", tags=["KServe Open Inference Protocol v2"])
@@ -79,9 +82,10 @@ def make_oip_router(settings: Settings) -> APIRouter:
         service: ServiceState = request.app.state.service
         if not service.ready:
             raise ServiceError(503, "policies are still loading", {"Retry-After": "1"})
-        batcher = service.batchers.get(name)
+        # `default` names the default policy (GET /policies), unless a policy has that name
+        batcher = service.batchers.get(name) or (service.batchers.get(service.default_policy) if name == DEFAULT_ALIAS else None)
         if batcher is None:
-            raise ServiceError(404, f"unknown model {name!r}; loaded models: {sorted(service.batchers)}")
+            raise ServiceError(404, f"unknown model {name!r}; loaded models: {sorted(service.batchers)} (or {DEFAULT_ALIAS!r})")
         if version is not None and version != VERSION:
             raise ServiceError(404, f"model {name!r} has version {VERSION!r} only, not {version!r}")
         return service, batcher

@@ -83,15 +83,18 @@ def unpack(data: bytes) -> Any:
 
 
 def make_openpi_router(settings: Settings) -> APIRouter:
-    """The `/openpi/{policy}` websocket route."""
+    """The `/openpi/{policy}` websocket route, and `/openpi` and `/` for the default policy."""
     router = APIRouter()
     expected = settings.api_key.get_secret_value().encode() if settings.api_key else None
     max_bytes = settings.max_body_bytes
 
+    @router.websocket("/")  # openpi-client's WebsocketClientPolicy(host, port) connects here
+    @router.websocket("/openpi")
     @router.websocket("/openpi/{policy}")
-    async def openpi(websocket: WebSocket, policy: str) -> None:
-        """Serve one openpi client: metadata first, then one action chunk per observation."""
+    async def openpi(websocket: WebSocket, policy: str | None = None) -> None:
+        """Serve one openpi client: metadata first, then one action chunk per observation; no policy name: the default."""
         service: ServiceState = websocket.app.state.service
+        policy = policy if policy is not None else service.default_policy
         try:
             batcher = _admit(websocket, service, policy, expected)
         except ServiceError as exc:

@@ -92,7 +92,9 @@ def make_router(settings: Settings, handler: "ActHandler | None" = None) -> APIR
             infos.append(
                 PolicyInfo(
                     name=name,
-                    kind=policy.kind,
+                    kind=policy.card.computes,
+                    stochastic=policy.kind == "flow" and policy.uses_noise,
+                    default=name == service.default_policy,
                     horizon=policy.horizon,
                     action_dim=policy.action_dim,
                     num_parameters=card.get("num_parameters"),

@@ -53,13 +53,13 @@ class ActRequestBase(BaseModel):
         },
     )
 
-    policy: str = Field(min_length=1, max_length=200, description="name of a loaded policy (see GET /policies)")
+    policy: str | None = Field(None, min_length=1, max_length=200, description="name of a loaded policy (see GET /policies); omitted: the default policy")
     state: State | None = Field(None, description="one state; the answer is one chunk [horizon, action_dim] (the policy's, see GET /policies)")
     seed: StrictInt | None = Field(
         None, ge=0, le=MAX_SEED,
         description=(
-            "noise seed for the whole request: the same seed and states give the same actions; "
-            "omitted (and no `seeds`): fresh noise (ignored by mse)"
+            "noise seed for the whole request, for a stochastic policy (GET /policies): the same seed and states give the "
+            "same actions; omitted (and no `seeds`): fresh noise. A policy that is not stochastic ignores it"
         ),
     )
     num_steps: StrictInt | None = Field(
@@ -100,7 +100,7 @@ def act_request_model(max_states: int) -> type[ActRequestBase]:
             min_length=1, max_length=max_states,
             description=(
                 "one noise seed per state of `states`: row i's actions equal those of a single request with "
-                "`state` = states[i] and `seed` = seeds[i], whatever else is in the batch (ignored by mse)"
+                "`state` = states[i] and `seed` = seeds[i], whatever else is in the batch (ignored by a policy that is not stochastic)"
             ),
         ),
     ]
@@ -128,7 +128,10 @@ class PolicyInfo(BaseModel):
     """One loaded policy, from its card."""
 
     name: str
-    kind: str
+    kind: str = Field(description="what it computes: mse; flow (a flow-matching sampler); flow-chooser (a flow's candidate chunks, "
+                                  "the one a learned outcome model prefers plays); flow-onepass (a one-pass student of a flow)")
+    stochastic: bool = Field(description="whether its actions depend on the request's seed (its noise); false: a seed changes nothing")
+    default: bool = Field(description="whether requests without a policy name get it (exactly one policy is the default)")
     num_parameters: int | None = None
     horizon: int = Field(description="actions per chunk: every answer of this policy is [horizon, action_dim] per state")
     action_dim: int = Field(description="numbers per action (the agent's target x, y)")

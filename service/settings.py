@@ -28,6 +28,7 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="PUSHT_", extra="ignore")
 
     models_dir: Path = Field(Path("models"), description="folder of policy cards NAME.json with NAME.onnx / NAME.safetensors")
+    default_policy: str = Field("", max_length=200, description="policy that requests without a name get (default: the one whose card says `default`, else the first name)")
     backend: Literal["onnx", "torch"] = Field("onnx", description="inference backend: ONNX Runtime, or torch (needs the train extra)")
     max_states: int = Field(1024, ge=1, description="most states in one request's `states` batch")
     batch_max_rows: int = Field(1024, ge=1, description="most state rows merged into one model call")

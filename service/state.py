@@ -18,4 +18,5 @@ class ServiceState:
     metrics: Metrics
     policies: dict[str, Policy] = field(default_factory=dict)
     batchers: dict[str, Batcher] = field(default_factory=dict)
+    default_policy: str = ""  # what a request without a policy name gets (service.backends.default_policy)
     ready: bool = False

@@ -62,6 +62,7 @@ class Recipe:
     policy: str
     description: str
     stages: list[Stage]
+    default: bool = False
 
     @property
     def sha256(self) -> str:
@@ -139,9 +140,11 @@ def load_recipe(path: Path) -> Recipe:
         raise RecipeError(f"{path}: recipe file not found") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise RecipeError(f"{path}: not valid TOML: {exc}") from None
-    unknown = set(data) - {"policy", "description", "stage"}
+    unknown = set(data) - {"policy", "description", "default", "stage"}
     if unknown:
-        raise RecipeError(f"{path}: unknown top-level keys {sorted(unknown)} (policy, description, stage)")
+        raise RecipeError(f"{path}: unknown top-level keys {sorted(unknown)} (policy, description, default, stage)")
+    if not isinstance(data.get("default", False), bool):
+        raise RecipeError(f"{path}: `default` must be true or false")
     if not isinstance(data.get("policy"), str) or not data["policy"]:
         raise RecipeError(f"{path}: needs `policy = \"NAME\"`, the name it ships as")
     raw = data.get("stage")
@@ -152,7 +155,7 @@ def load_recipe(path: Path) -> Recipe:
         stages.append(_parse_stage(path, index, dict(table), [s.name for s in stages]))
     if stages[-1].run != "ship":
         raise RecipeError(f"{path}: the last stage must be `run = \"ship\"`")
-    return Recipe(path, data["policy"], str(data.get("description", "")), stages)
+    return Recipe(path, data["policy"], str(data.get("description", "")), stages, data.get("default", False))
 
 
 def _parse_stage(path: Path, index: int, table: dict[str, Any], earlier: list[str]) -> Stage:
@@ -201,7 +204,8 @@ def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
     for index, stage in enumerate(recipe.stages, 1):
         settings = scaled(stage, options.scale)
         source = results[stage.source] if stage.source else None
-        key = stage_key(stage, settings, source, options.scale)
+        shipped = {"policy": recipe.policy, "description": recipe.description, "default": recipe.default}
+        key = stage_key(stage, settings, source, options.scale, shipped if stage.run == "ship" else None)
         stage_dir = options.out_dir / f"{stage.name}-{key}"  # recipes that share a stage share its folder
         print(f"[{index}/{len(recipe.stages)}] {stage.name} ({stage.run}) -> {stage_dir}", file=sys.stderr, flush=True)
         result = _cached(stage, key, stage_dir, options.models_dir / f"{recipe.policy}.json")
@@ -236,9 +240,13 @@ def _default(cls: type, name: str) -> Any:
     return next(f.default for f in fields(cls) if f.name == name)
 
 
-def stage_key(stage: Stage, settings: dict[str, Any], source: StageResult | None, scale: float) -> str:
-    """A hash of what the stage computes from: its kind, settings, acting settings and its input (a stage's key or the data)."""
+def stage_key(stage: Stage, settings: dict[str, Any], source: StageResult | None, scale: float,
+              shipped: dict[str, Any] | None = None) -> str:
+    """A hash of what the stage computes from: its kind, settings, acting settings and its input (a stage's key or the data;
+    for ship also what the recipe says of the policy it ships)."""
     inputs: dict[str, Any] = {"from": source.key if source else None}
+    if shipped is not None:
+        inputs["shipped"] = shipped
     if stage.run == "train":
         inputs["data"] = tree_sha256(Path(settings.get("data", "data/pusht_lowdim.zarr")))
     text = json.dumps({"run": stage.run, "settings": settings, "acting": stage.acting, "inputs": inputs, "scale": scale},

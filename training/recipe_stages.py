@@ -103,7 +103,8 @@ def ship(ctx: StageContext) -> StageOutcome:
                                                      "wall_time_s": round(wall, 1), "score": _score(score)}]
     fields = {"recipe": {"file": _relative(ctx.recipe.path), "sha256": ctx.recipe.sha256}, "git_commit": ctx.commit,
               "stages": stages, "stages_wall_time_s": round(sum(s["wall_time_s"] for s in stages), 1),
-              "reproduce": f"{RECIPE_COMMAND} {_relative(ctx.recipe.path)}", "run": f"{ctx.options.records_dir.name}/{ctx.recipe.policy}"}
+              "reproduce": f"{RECIPE_COMMAND} {_relative(ctx.recipe.path)}", "run": f"{ctx.options.records_dir.name}/{ctx.recipe.policy}",
+              "default": ctx.recipe.default}
     if ctx.options.scale != 1:
         fields["recipe"]["scale"] = ctx.options.scale
     labels = {str(r.dir): f"<recipe stage {r.stage}>" for r in ctx.before} | {str(copy): f"<recipe stage {ctx.stage.name}>"}

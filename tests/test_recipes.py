@@ -1,0 +1,133 @@
+"""Recipes: every file parses; each runs at --scale 0.01 to a policy the real service serves; a rerun is cached; a changed
+stage reruns with its successors only; every shipped card cites its recipe and names no path a clone lacks."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from tests.service_fixtures import REPO, UvicornProcess
+from training.recipe import RecipeError, load_recipe, main
+
+RECIPES = sorted((REPO / "recipes").glob("*.toml"))
+STATE = [222.0, 97.0, 222.0, 222.0, 0.8]
+
+
+def test_every_recipe_parses_and_ends_in_ship() -> None:
+    assert {p.stem for p in RECIPES} >= {"mse", "flow", "flow-chooser"}
+    defaults = [p.stem for p in RECIPES if load_recipe(p).default]
+    assert defaults == ["flow-chooser"]  # exactly one recipe ships the default policy
+    for path in RECIPES:
+        recipe = load_recipe(path)
+        assert recipe.policy == path.stem and recipe.stages[-1].run == "ship"
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("policy = 'x'\n[[stage]]\nname = 'a'\nrun = 'train'\npolicy = 'mse'\n", "last stage must be"),
+        ("policy = 'x'\n[[stage]]\nname = 'a'\nrun = 'dance'\n", "`run` must be one of"),
+        ("policy = 'x'\n[[stage]]\nname = 'a'\nrun = 'train'\nsteps = 5\nlearning_rate = 1\n", "unknown settings"),
+        ("policy = 'x'\n[[stage]]\nname = 'a'\nrun = 'train'\nout_dir = 'y'\n", "set by the recipe runner"),
+        ("policy = 'x'\n[[stage]]\nname = 'a'\nrun = 'ship'\nfrom = 'b'\n", "`from` must name an earlier stage"),
+        ("policy = 'x'\ncolour = 1\n[[stage]]\nname = 'a'\nrun = 'ship'\n", "unknown top-level keys"),
+        ("policy = 'x'\n[[stage]]\nname = 'a'\nrun = 'train'\nacting = { speed = 2 }\n", "`acting` takes only"),
+        ("policy = [\n", "not valid TOML"),
+    ],
+)
+def test_a_bad_recipe_gets_one_line_naming_the_file(tmp_path: Path, text: str, problem: str, capsys) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(RecipeError, match=re.escape(problem)):
+        load_recipe(path)
+    assert main([str(path), "--out-dir", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {path}") and problem in err[0]
+    assert not (tmp_path / "runs").exists()
+
+
+def _recipe(path: Path, out: Path, *extra: str) -> str:
+    """Run a recipe at scale 0.01 into OUT (runs, models, records); its summary table."""
+    command = [sys.executable, "-m", "training.recipe", str(path), "--scale", "0.01", "--no-progress", "--out-dir", str(out / "runs"),
+               "--models-dir", str(out / "models"), "--records-dir", str(out / "records"), *extra]
+    done = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout
+
+
+def _statuses(table: str) -> dict[str, str]:
+    rows = [line.split("|") for line in table.splitlines() if line.startswith("| ") and not line.startswith(("| stage", "| total"))]
+    return {cells[1].strip(): cells[4].strip() for cells in rows}
+
+
+@pytest.fixture(scope="module")
+def smoke(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Every recipe run once at --scale 0.01 into one folder (flow and flow-chooser share their imitation stage)."""
+    out = tmp_path_factory.mktemp("recipes")
+    tables = {path.stem: _recipe(path, out) for path in RECIPES}
+    (out / "tables.json").write_text(json.dumps(tables))
+    return out
+
+
+@pytest.mark.slow
+def test_each_recipe_makes_a_policy_the_service_serves(smoke: Path) -> None:
+    tables = json.loads((smoke / "tables.json").read_text())
+    assert _statuses(tables["flow-chooser"])["imitation"] == "cached"  # the flow recipe ran it first
+    for path in RECIPES:
+        card = json.loads((smoke / "models" / f"{path.stem}.json").read_text())
+        assert card["recipe"]["file"] == f"recipes/{path.name}" and card["recipe"]["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+        assert card["reproduce"] == f"python -m training.recipe recipes/{path.name}"
+        assert [s["name"] for s in card["stages"]] == [s.name for s in load_recipe(path).stages]
+        assert str(smoke / "runs") not in json.dumps(card)
+    with UvicornProcess({"PUSHT_MODELS_DIR": str(smoke / "models")}) as server:
+        listing = {p["name"]: p for p in httpx.get(f"{server.url}/policies").json()["policies"]}
+        assert {name: (p["kind"], p["stochastic"], p["default"]) for name, p in listing.items()} == {
+            "mse": ("mse", False, False), "flow": ("flow", True, False), "flow-chooser": ("flow-chooser", True, True)}
+        assert listing["flow"]["network_evaluations"] == listing["flow"]["num_steps"] == 10
+        for name in listing:
+            reply = httpx.post(f"{server.url}/act", json={"policy": name, "state": STATE, "seed": 1})
+            assert reply.status_code == 200 and np.asarray(reply.json()["actions"]).shape == (12, 2), reply.text
+        nameless = httpx.post(f"{server.url}/act", json={"state": STATE, "seed": 1})
+        assert nameless.json()["policy"] == "flow-chooser"
+
+        def flow(seed: int) -> list:
+            return httpx.post(f"{server.url}/act", json={"policy": "flow", "state": STATE, "seed": seed}).json()["actions"]
+
+        assert flow(1) == flow(1) and flow(1) != flow(2)  # its noise comes from the seed and changes its actions
+
+
+@pytest.mark.slow
+def test_a_rerun_is_cached_and_a_changed_stage_reruns_with_its_successors(smoke: Path) -> None:
+    assert set(_statuses(_recipe(REPO / "recipes" / "mse.toml", smoke)).values()) == {"cached"}
+    changed = smoke / "flow-chooser.toml"
+    text = (REPO / "recipes" / "flow-chooser.toml").read_text()
+    changed.write_text(text.replace("critic_lr = 0.0005", "critic_lr = 0.0004"))
+    assert changed.read_text() != text
+    statuses = _statuses(_recipe(changed, smoke))
+    assert statuses == {"imitation": "cached", "outcome": "cached", "outcome-stretch": "ran", "ship": "ran"}
+
+
+def test_every_shipped_card_cites_its_recipe_and_names_no_missing_path() -> None:
+    cards = sorted((REPO / "models").glob("*.json"))
+    assert cards
+    for path in cards:
+        card = json.loads(path.read_text())
+        recipe = card.get("recipe") or {}
+        assert (REPO / recipe.get("file", "?")).is_file(), f"{path.name}: no recipe"
+        assert hashlib.sha256((REPO / recipe["file"]).read_bytes()).hexdigest() == recipe["sha256"], f"{path.name}: its recipe changed since"
+        assert "scale" not in recipe and card["reproduce"] == f"python -m training.recipe {recipe['file']}"
+        assert not card["git_commit"].endswith("-dirty")
+        assert "runs/" not in path.read_text(), f"{path.name} names a runs/ path a clone lacks"
+        assert card["stages"][-1]["run"] == "ship" and card["stages_wall_time_s"] == pytest.approx(
+            sum(s["wall_time_s"] for s in card["stages"]), abs=0.5)
+    defaults = [p.stem for p in cards if json.loads(p.read_text()).get("default")]
+    assert defaults == ["flow-chooser"]
+    assert json.loads((REPO / "models" / "flow-chooser.json").read_text())["stages_wall_time_s"] <= 5400
