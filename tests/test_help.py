@@ -14,14 +14,11 @@ REPO = Path(__file__).resolve().parent.parent
 
 @pytest.mark.parametrize("module, required, defaulted", [
     ("training.train", "--policy {mse,flow} policy kind: mse or flow --name", "(default: 200000)"),
+    ("training.recipe", "recipe the recipe file, e.g. recipes/flow.toml", "(default: runs/recipes)"),
+    ("training.finetune", "--init INIT flow checkpoint stem to fine-tune", "(default: 0.2)"),
     ("training.ship", "--run RUN the finished run folder written by training.train (has last.* and best.*) --name", "(default: records)"),
-    ("training.collect", "", "(default: 1000)"),
     ("training.evaluate", "--model MODEL an ONNX file (models/flow.onnx, card NAME.json beside it) or a checkpoint stem (models/flow) --episodes",
      "(default: 200000)"),
-    ("training.dagger", "--model MODEL checkpoint stem of the policy to improve (models/flow; NAME.onnx means its stem) --corrections",
-     "(default: 100000)"),
-    ("training.rescore", "--name NAME [NAME ...] shipped policies to re-score (models/NAME.json and .onnx) --models-dir", "(default: 200000)"),
-    ("training.lookahead_collect", "--out OUT output zarr store (replaced if it exists)", "(outside the evaluation ranges 100000..999999) (default: 3000000)"),
 ])
 def test_help_shows_defaults_once(module, required, defaulted):
     done = subprocess.run([sys.executable, "-m", module, "--help"], cwd=REPO, capture_output=True, text=True, timeout=120)

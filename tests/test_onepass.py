@@ -365,18 +365,3 @@ def test_a_shared_second_pass_treats_every_hypothesis_alike_and_exports(tmp_path
 def test_a_near_tie_goes_to_the_earlier_choice() -> None:
     distance = torch.tensor([[1.0, 1.0005, 0.9999], [2.0, 1.0, 1.0], [0.5, 0.4, 0.3]])
     assert first_nearest(distance).tolist() == [0, 1, 2]
-
-
-def test_the_choice_regret_script_measures_a_students_pick_against_the_outcome_models() -> None:
-    import subprocess
-    import sys
-
-    student = REPO / "records" / "distill-mc16-shared192" / "student"
-    done = subprocess.run([sys.executable, "scripts/choice_regret.py", "--card", str(student), "--states", "64", "--episodes", "2"],
-                          cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
-    lines = [json.loads(line) for line in done.stdout.splitlines()]
-    assert [line.get("states") for line in lines[:3]] == ["demonstrations", "demonstrations moved", "its own episodes"]
-    assert lines[0]["n"] == 64 and all(0 <= line["agreement"] <= 1 and line["regret_mean"] >= 0 for line in lines[:3])
-    refused = subprocess.run([sys.executable, "scripts/choice_regret.py", "--card", str(TEACHER)], cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert refused.returncode == 2 and "has no second pass" in refused.stderr

@@ -127,26 +127,13 @@ def test_a_stretched_candidate_moves_every_target_that_much_farther_from_the_age
         torch.testing.assert_close(actions[:, 4 * i : 4 * (i + 1)], want, atol=1e-3, rtol=0)
 
 
-@pytest.mark.parametrize("args", [["smoothness", "--states", "4"], ["best-of", "--episodes", "2", "--candidates", "2", "--criterion", "keypoints"],
-                                  ["local", "--episodes", "2", "--where", "gate", "--iterations", "1", "--population", "2"]])
-def test_finish_diagnostics_run_and_report(args: list[str]) -> None:
-    done = subprocess.run([sys.executable, "scripts/finish_diagnostics.py", *args], cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
-    result = json.loads(done.stdout)
-    assert result["mode"] == args[0]
-    if args[0] == "smoothness":
-        assert result["states"] == 4 and -1 <= result["shift_0.1px"]["correlation"] <= 1
-    else:
-        assert result["seeds"] == [300000, 300001] and 0 <= result["success_rate"] <= 1
-
-
 def test_outcome_keys_are_validated() -> None:
     with pytest.raises(ValueError, match="outcome_dims"):
         build_policy("flow", outcome_dims=[0])
     with pytest.raises(ValueError, match="outcome_candidates"):
         build_policy("flow", outcome_dims=[8], outcome_candidates=0)
-    with pytest.raises(ValueError, match="one of steering_dims, selector_dims, outcome_dims and onepass_dims"):
-        build_policy("flow", outcome_dims=[8], steering_dims=[8])
+    with pytest.raises(ValueError, match="one of outcome_dims and onepass_dims"):
+        build_policy("flow", outcome_dims=[8], onepass_dims=[8])
     for bad in ([1.5, 1.0], [], [1.0, 0.0], [1.0, 5.0], "1"):
         with pytest.raises(ValueError, match="outcome_stretches"):
             build_policy("flow", outcome_dims=[8], outcome_stretches=bad)
@@ -170,15 +157,13 @@ def test_a_chooser_counts_every_candidate_pass(tmp_path: Path) -> None:
     assert reproduce_commands(tuned, Path("runs/x"), "flow")[0] == "python -m training.finetune --algo outcome"
 
 
-def test_fine_tuning_a_fine_tuned_flow_is_refused_unless_an_outcome_fit_continues_it(tmp_path: Path) -> None:
+def test_an_outcome_fit_continues_a_chooser_of_the_same_widths(tmp_path: Path) -> None:
     from training.finetune import finetune
     from training.finetune_config import FinetuneConfig
 
-    with pytest.raises(ValueError, match="fine-tuned already"):
-        finetune(FinetuneConfig(algo="qselect", init=str(CHOOSER), name="again", out_dir=str(tmp_path), progress=False))
     with pytest.raises(ValueError, match="must match to start from it"):
-        finetune(FinetuneConfig(algo="outcome", init=str(CHOOSER), outcome_dims="8", name="again", out_dir=str(tmp_path), progress=False))
-    run = finetune(FinetuneConfig(algo="outcome", init=str(CHOOSER), stretches="1,1.5", iterations=1, num_envs=2, rollout_decisions=1,
+        finetune(FinetuneConfig(init=str(CHOOSER), outcome_dims="8", name="again", out_dir=str(tmp_path), progress=False))
+    run = finetune(FinetuneConfig(init=str(CHOOSER), stretches="1,1.5", iterations=1, num_envs=2, rollout_decisions=1,
                                   label_envs=1, eval_every=0, batch_size=8, learning_starts=8, name="warm", out_dir=str(tmp_path), progress=False))
     policy, card = load_checkpoint(str(run.dir / "last"))
     chooser, _ = load_checkpoint(CHOOSER)
@@ -194,35 +179,22 @@ def test_fine_tuning_a_fine_tuned_flow_is_refused_unless_an_outcome_fit_continue
     assert (policy.outcome.model.net[0].weight - start).abs().max() < 0.05 * start.abs().max()
 
 
-def test_value_probe_runs_and_refuses_a_flow_without_chooser() -> None:
-    script = [sys.executable, "scripts/value_probe.py"]
-    done = subprocess.run([*script, "--collect", "4", "--fit-steps", "5", "--episodes", "2"], cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stderr
-    result = json.loads(done.stdout)
-    assert result["value_fit"]["states"] > 4
-    for name in ("corner_distance", "value_of_next_state"):
-        assert result[name]["seeds"] == [300000, 300001] and 0 <= result[name]["success_rate"] <= 1
-    plain = subprocess.run([*script, "--model", str(SHIPPED), "--collect", "2"], cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert plain.returncode == 2 and plain.stderr.strip().endswith("has no outcome chooser (outcome_dims in its architecture)")
-
-
 def test_a_resumed_outcome_fit_goes_on_with_its_random_stream(tmp_path: Path) -> None:
     from training.finetune_config import FinetuneConfig
-    from training.noise_rl import NoiseAgent
-    from training.outcome_fit import OutcomeFit
+    from training.outcome_fit import FlowChooser, OutcomeFit
 
-    cfg = FinetuneConfig(algo="outcome", outcome_dims="8", candidates=2, name="x", out_dir=str(tmp_path), progress=False)
+    cfg = FinetuneConfig(init=str(SHIPPED), outcome_dims="8", candidates=2, name="x", out_dir=str(tmp_path), progress=False)
     base, card = load_checkpoint(SHIPPED)
-    fit = OutcomeFit(NoiseAgent(base, card, cfg), cfg, torch.Generator().manual_seed(0))
+    fit = OutcomeFit(FlowChooser(base, card, cfg), cfg, torch.Generator().manual_seed(0))
     fit.rng.random(5)
     tensors, extra = fit.state()
-    again = OutcomeFit(NoiseAgent(base, card, cfg), cfg, torch.Generator().manual_seed(0))
+    again = OutcomeFit(FlowChooser(base, card, cfg), cfg, torch.Generator().manual_seed(0))
     again.load_state(tensors, json.loads(json.dumps(extra)))  # the state goes through JSON on disk
     assert again.rng.random() == fit.rng.random()
 
 
 def test_bad_stretches_on_the_command_line_get_one_line_naming_them() -> None:
-    done = subprocess.run([sys.executable, "-m", "training.finetune", "--algo", "outcome", "--stretches", "1.5,1"], cwd=REPO,
+    done = subprocess.run([sys.executable, "-m", "training.finetune", "--init", str(SHIPPED), "--stretches", "1.5,1"], cwd=REPO,
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2 and "stretches must be comma-separated numbers in (0, 4] starting with 1" in done.stderr
 

@@ -21,13 +21,13 @@ TIME_EMBEDDINGS = ("scalar", "sinusoidal")
 DEFAULT_TIME_EMBEDDING_DIM = 32
 _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
 MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame", "prev_state", "pace_input", "acting_pace")
-FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale", "steering_dims", "selector_dims", "selector_candidates",
+FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale",
                                   "outcome_dims", "outcome_candidates", "outcome_stretches", "onepass_dims", "onepass_scorer_dims",
                                   "onepass_scorer_shared", "onepass_scorer_context", "onepass_scorer_stretches", "onepass_scorer_top", "onepass_ranker_dims")
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 _VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar",
-                     "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0, "steering_dims": None,
-                     "selector_dims": None, "selector_candidates": 16, "outcome_dims": None, "outcome_candidates": 16, "outcome_stretches": [1.0], "onepass_dims": None,
+                     "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0,
+                     "outcome_dims": None, "outcome_candidates": 16, "outcome_stretches": [1.0], "onepass_dims": None,
                      "onepass_scorer_dims": None, "onepass_scorer_shared": False, "onepass_scorer_context": True, "onepass_scorer_stretches": [1.0], "onepass_scorer_top": None, "onepass_ranker_dims": None, "prev_state": False, "pace_input": False, "acting_pace": None}
 
 
@@ -63,7 +63,7 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale <= 10:
             raise ValueError(f"noise_scale must be a number in [0, 10], got {scale!r}")
         variants["noise_scale"] = float(scale)
-    for key in ("steering_dims", "selector_dims", "outcome_dims", "onepass_dims", "onepass_scorer_dims", "onepass_ranker_dims"):
+    for key in ("outcome_dims", "onepass_dims", "onepass_scorer_dims", "onepass_ranker_dims"):
         dims = variants.get(key)
         if dims is None:
             continue
@@ -72,16 +72,14 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         ):
             raise ValueError(f"{key} must be null or a non-empty list of positive ints, got {dims!r}")
         variants[key] = [int(w) for w in dims]
-    for key in ("selector_candidates", "outcome_candidates"):
-        k = variants.get(key, 16)
-        if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 256:
-            raise ValueError(f"{key} must be an int in [1, 256], got {k!r}")
+    k = variants.get("outcome_candidates", 16)
+    if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 256:
+        raise ValueError(f"outcome_candidates must be an int in [1, 256], got {k!r}")
     for key in ("outcome_stretches", "onepass_scorer_stretches"):
         if key in variants:
             variants[key] = check_stretches(variants[key], key)
-    chosen = [key for key in ("steering_dims", "selector_dims", "outcome_dims", "onepass_dims") if variants.get(key) is not None]
-    if len(chosen) > 1:
-        raise ValueError(f"a flow takes one of steering_dims, selector_dims, outcome_dims and onepass_dims, got {' and '.join(chosen)}")
+    if variants.get("outcome_dims") is not None and variants.get("onepass_dims") is not None:
+        raise ValueError("a flow takes one of outcome_dims and onepass_dims, got outcome_dims and onepass_dims")
     if variants.get("onepass_scorer_dims") is not None and variants.get("onepass_dims") is None:
         raise ValueError("onepass_scorer_dims scores a one-pass head's candidates: it needs onepass_dims")
     if variants.get("onepass_scorer_shared") and variants.get("onepass_scorer_dims") is None:

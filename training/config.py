@@ -33,7 +33,7 @@ class TrainConfig:
     overwrite: bool = _f(False, "delete the existing run NAME and start it again")
     out_dir: str = _f("runs", "parent folder of run folders")
     data: str = _f("data/pusht_lowdim.zarr", "replay zarr with data/state, data/action, meta/episode_ends")
-    extra_data: str = _f("", "comma-separated zarr stores (same layout, e.g. from training.collect) whose windows join the demonstrations'; normalization stays the demonstrations'")
+    extra_data: str = _f("", "comma-separated zarr stores (same layout, e.g. episodes saved by /viewer) whose windows join the demonstrations'; normalization stays the demonstrations'")
     human_weight: float = _f(1.0, "sampling weight of extra-data windows whose first action a human gave (data/human, as /viewer saves); demonstrations weigh 1")
     extra_stride: int = _f(1, "extra-data windows start only every N-th frame of an episode (12: a collecting policy's decision points, where its chunk was chosen)")
     policy_step_weight: float = _f(1.0, "sampling weight of the other windows of stores with data/human, the policy's own steps (0: learn only the human's)")

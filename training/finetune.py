@@ -1,19 +1,16 @@
-"""Fine-tune beyond imitation, the flow's weights frozen: choose its start noise (DSRL) or among its chunks.
+"""Fine-tune beyond imitation, the flow's weights frozen: fit the outcome chooser that picks among its chunks.
 
-    python -m training.finetune --init models/flow --name flow-dsrl
-    python -m training.finetune --algo outcome --name flow-outcome16 --iterations 160 ...   (models/README.md)
+    python -m training.finetune --init runs/recipes/imitation-KEY/last --name flow-outcome --iterations 160 ...
+    (the recipe stage `run = "finetune"` runs this: recipes/flow-chooser.toml)
 
-`--algo outcome` (`training.outcome_fit`) fits a one-chunk model of the block on simulated lookaheads
-of the flow's own candidate chunks (each also at `--stretches`, faster); the served flow then plays the
-candidate it predicts closest to the goal. Its `--init` may be such a chooser, whose model it goes on fitting. `--algo ppo` and `--algo qselect` learn in the noise space: with ppo,
-a steering network (`training.steering`) picks the start noise from the state. The flow's
-weights never change. One decision is one 12-action chunk executed open loop in `num_envs` envs
-(`training.chunk_env`), on training seeds disjoint from every evaluation and held-out range. Reward
-of a chunk: the change of the env's reward (coverage / 0.95, a potential, so the optimum is that of
-the success reward alone) plus `success_bonus` when the block lands; the episode then ends, so
-finishing early pays. Periodic evaluation uses `training.evaluate` on seeds 400000.. (never held out).
-Each checkpoint is a flow checkpoint (`steering_dims`, `selector_dims` or `outcome_dims` in its architecture): export, ship, the
-service and the client take it as they take any flow.
+`training.outcome_fit` fits a one-chunk model of the block on simulated lookaheads of the flow's own
+candidate chunks (each also at `--stretches`, faster); the served flow then plays the candidate it
+predicts closest to the goal. `--init` may be such a chooser, whose model the fit goes on fitting. The
+flow's weights never change. One decision is one 12-action chunk executed open loop in `num_envs` envs
+(`training.chunk_env`), on training seeds disjoint from every evaluation and held-out range. Periodic
+evaluation uses `training.evaluate` on seeds 400000.. (never held out). Each checkpoint is a flow
+checkpoint with `outcome_dims` in its architecture: export, ship, the service and the client take it
+as they take any flow.
 """
 
 from __future__ import annotations
@@ -26,8 +23,7 @@ import torch
 
 from training.chunk_env import ChunkVectorEnv
 from training.finetune_config import RESUMABLE_CHANGES, FinetuneConfig, parse_config
-from training.noise_rl import ALGORITHMS, NoiseAgent
-from training.outcome_fit import OutcomeFit
+from training.outcome_fit import FlowChooser, OutcomeFit
 
 __all__ = ["finetune", "main"]
 
@@ -54,11 +50,11 @@ def finetune(cfg: FinetuneConfig):
     torch.manual_seed(cfg.seed)
     base, base_card = load_checkpoint(cfg.init)
     if base_card["kind"] != "flow":
-        raise ValueError(f"{cfg.init} is a {base_card['kind']} checkpoint; noise-space fine-tuning needs a flow")
-    require_state_only(base_card, cfg.init, "noise-space fine-tuning")
-    agent = NoiseAgent(base, base_card, cfg)
+        raise ValueError(f"{cfg.init} is a {base_card['kind']} checkpoint; fine-tuning needs a flow")
+    require_state_only(base_card, cfg.init, "fine-tuning")
+    agent = FlowChooser(base, base_card, cfg)
     generator = torch.Generator().manual_seed(cfg.seed)
-    algorithm = {**ALGORITHMS, "outcome": OutcomeFit}[cfg.algo](agent, cfg, generator)
+    algorithm = OutcomeFit(agent, cfg, generator)
     run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite, may_change=RESUMABLE_CHANGES)
     card = {"name": "flow", "config": cfg.to_dict(), "git_commit": git_commit(), "init": str(cfg.init), "reproduce": {"finetune": cfg.command()}}
     first, episodes_before = 1, 0
@@ -105,8 +101,6 @@ def finetune(cfg: FinetuneConfig):
                           "episode_max_reward": float(np.mean(finished_max)) if finished_max else None,
                           "episode_success": float(np.mean(finished_success)) if finished_success else None,
                           "wall_time_s": run.elapsed_s, **stats}
-                if agent.steering is not None:
-                    record["std"] = float(agent.steering.std().mean().detach())
                 run.log(record)
                 finished_max.clear()
                 finished_success.clear()

@@ -11,16 +11,14 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 from training.cli import build_parser, command_line, option
-from training.ppo import PPOSettings
 
 PROG = "python -m training.finetune"
 # fields that do not change what a run computes, so --resume accepts new values
 RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_every")
-ALGOS = ("ppo", "qselect", "outcome")
-# The imitation flow that the outcome chooser chooses among the chunks of: the same weights, as a plain flow checkpoint.
-IMITATION_FLOW = "records/flow-agentframe-padend-150k-noise0.3/last"
+# Noise-space PPO (DSRL) and a Q-critic picking start noises were tried and dropped (docs/findings.md).
+ALGOS = ("outcome",)
 # The outcome chooser (64 candidates x 10 flow steps, each at 4 stretches), shipped as models/flow before the one-pass student
-# distilled from it: the teacher of distillation and what the chooser's probes and fine-tuning start from.
+# distilled from it: the default teacher of distillation.
 CHOOSER = "records/flow-outcome16-stretch/last"
 
 
@@ -28,36 +26,25 @@ CHOOSER = "records/flow-outcome16-stretch/last"
 class FinetuneConfig:
     """Everything that defines a fine-tuning run."""
 
-    algo: str = option("ppo", "ppo (a steering network, on-policy clipped surrogate), qselect (a critic picks the best of --candidates starts) "
-                       "or outcome (a learned one-chunk model of the block picks the best of --candidates chunks)", choices=ALGOS)
-    init: str = option(IMITATION_FLOW, "plain flow checkpoint stem to fine-tune (its weights stay frozen; default: the imitation flow inside the shipped one); "
-                       "with --algo outcome also a flow with an outcome chooser, whose model the fit starts from")
-    name: str = option("flow-dsrl", "run name; outputs go to OUT_DIR/NAME")
+    init: str = option("", "flow checkpoint stem to fine-tune (its weights stay frozen), or a flow with an outcome chooser, whose "
+                       "model the fit goes on fitting", required=True)
+    algo: str = option("outcome", "what is fitted: outcome (a one-chunk model of the block that picks the best of --candidates chunks)",
+                       choices=ALGOS)
+    name: str = option("flow-outcome", "run name; outputs go to OUT_DIR/NAME")
     out_dir: str = option("runs", "parent folder of run folders")
-    iterations: int = option(1000, "PPO iterations (each: rollout_decisions chunks in every env, then the update)")
+    iterations: int = option(100, "iterations (each: rollout_decisions chunks in every env, each followed by the updates)")
     num_envs: int = option(128, "envs stepped in lockstep")
     rollout_decisions: int = option(8, "chunks per env between updates")
-    steering_dims: str = option("256,256", "hidden widths of the steering MLP (comma-separated)")
-    critic_dims: str = option("256,256", "hidden widths of the critic MLP (comma-separated)")
-    lr: float = option(3e-4, "Adam learning rate of the steering")
-    critic_lr: float = option(1e-3, "Adam learning rate of the critic (outcome: of the outcome model)")
-    outcome_dims: str = option("512,512,512,512", "outcome: hidden widths of the one-chunk outcome model (comma-separated)")
-    stretches: str = option("1", "outcome: stretches of each candidate chunk (comma-separated, the first 1): a chunk's targets s times as far from the agent")
-    explore: float = option(0.2, "outcome: probability that an env plays a random candidate instead of the model's choice")
-    gamma: float = option(0.99, "discount per decision (one chunk)")
-    gae_lambda: float = option(0.95, "GAE lambda")
-    clip: float = option(0.2, "PPO ratio clip")
-    epochs: int = option(4, "PPO epochs per iteration")
-    minibatch: int = option(256, "PPO minibatch size")
-    entropy_coef: float = option(0.0, "entropy bonus of the steering's Gaussian")
-    success_bonus: float = option(1.0, "reward added when a chunk lands the block (coverage > 0.95)")
-    batch_size: int = option(256, "qselect, outcome: minibatch size")
-    buffer_size: int = option(1_000_000, "qselect, outcome: replay capacity (transitions, labels)")
-    learning_starts: int = option(20_000, "qselect, outcome: played transitions (outcome: labels) before the learner chooses (plain flow sampling until then)")
-    updates_per_decision: int = option(16, "qselect, outcome: gradient updates after each decision step of all envs")
-    candidates: int = option(16, "qselect, outcome: candidates chosen from at each decision")
-    label_candidates: int = option(0, "qselect: fresh starts simulated one chunk ahead from a visited state to label Q (0: off)")
-    label_envs: int = option(32, "qselect, outcome: envs whose state is labelled at each decision step")
+    critic_lr: float = option(1e-3, "Adam learning rate of the outcome model")
+    outcome_dims: str = option("512,512,512,512", "hidden widths of the one-chunk outcome model (comma-separated)")
+    stretches: str = option("1", "stretches of each candidate chunk (comma-separated, the first 1): a chunk's targets s times as far from the agent")
+    explore: float = option(0.2, "probability that an env plays a random candidate instead of the model's choice")
+    batch_size: int = option(256, "minibatch size")
+    buffer_size: int = option(1_000_000, "replay capacity (labels)")
+    learning_starts: int = option(20_000, "labels before the model chooses (random candidates until then)")
+    updates_per_decision: int = option(16, "gradient updates after each decision step of all envs")
+    candidates: int = option(16, "candidates chosen from at each decision")
+    label_envs: int = option(32, "envs whose state is labelled at each decision step")
     flow_num_steps: int = option(10, "Euler steps of the frozen flow")
     train_seed_start: int = option(10_000_000, "first training episode seed (episodes use consecutive seeds)")
     eval_every: int = option(50, "evaluate (and checkpoint) every N iterations (0: only at the end)")
@@ -72,39 +59,25 @@ class FinetuneConfig:
     progress: bool = option(True, "show a tqdm progress bar on stderr")
 
     def __post_init__(self) -> None:
+        if not self.init:
+            raise ValueError("init must name the flow checkpoint to fine-tune")
         if self.algo not in ALGOS:
             raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
-        positive = ("iterations", "num_envs", "rollout_decisions", "epochs", "minibatch", "flow_num_steps", "eval_episodes", "log_every",
-                    "threads", "batch_size", "buffer_size", "updates_per_decision", "label_envs", "checkpoint_every")
+        positive = ("iterations", "num_envs", "rollout_decisions", "flow_num_steps", "eval_episodes", "log_every", "threads", "batch_size",
+                    "buffer_size", "updates_per_decision", "label_envs", "checkpoint_every", "candidates")
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("lr", "critic_lr", "clip"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("gamma", "gae_lambda"):
-            if not 0 < getattr(self, name) <= 1:
-                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)}")
+        if not self.critic_lr > 0:
+            raise ValueError(f"critic_lr must be > 0, got {self.critic_lr}")
         if self.resume and self.overwrite:
             raise ValueError("--resume and --overwrite exclude each other")
-        if self.label_candidates < 0:
-            raise ValueError(f"label_candidates must be >= 0, got {self.label_candidates}")
         if self.eval_every < 0 or self.train_seed_start < 0 or self.eval_seed < 0 or self.seed < 0:
             raise ValueError("eval_every, train_seed_start, eval_seed and seed must be >= 0")
         if not 0 <= self.explore <= 1:
             raise ValueError(f"explore must be in [0, 1], got {self.explore}")
-        self.steering_dims_list()
-        self.critic_dims_list()
         self.outcome_dims_list()
         self.stretches_list()
-
-    def steering_dims_list(self) -> list[int]:
-        """`steering_dims` as a list of widths."""
-        return _widths("steering_dims", self.steering_dims)
-
-    def critic_dims_list(self) -> list[int]:
-        """`critic_dims` as a list of widths."""
-        return _widths("critic_dims", self.critic_dims)
 
     def outcome_dims_list(self) -> list[int]:
         """`outcome_dims` as a list of widths."""
@@ -119,10 +92,6 @@ class FinetuneConfig:
         except ValueError:
             raise ValueError(f"stretches must be comma-separated numbers in (0, 4] starting with 1, got {self.stretches!r}") from None
 
-    def ppo_settings(self) -> PPOSettings:
-        """The PPO update's hyperparameters."""
-        return PPOSettings(self.gamma, self.gae_lambda, self.clip, self.epochs, self.minibatch, self.entropy_coef)
-
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of every field."""
         return asdict(self)
@@ -134,7 +103,7 @@ class FinetuneConfig:
 
 def parse_config(argv: list[str] | None = None) -> FinetuneConfig:
     """Parse command-line flags into a validated FinetuneConfig (argparse reports bad values)."""
-    parser = build_parser(FinetuneConfig, PROG, "Fine-tune a flow policy beyond imitation: PPO on the env's reward in its noise space (DSRL), the flow frozen.")
+    parser = build_parser(FinetuneConfig, PROG, "Fine-tune a flow beyond imitation, its weights frozen: fit a one-chunk outcome model that chooses among its chunks.")
     args = parser.parse_args(argv)
     try:
         return FinetuneConfig(**vars(args))

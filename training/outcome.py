@@ -1,7 +1,7 @@
 """A learned model of what one chunk does to the block, and the choice among a flow's candidate chunks it makes.
 
 The flow's samples already contain success: keeping, at each decision, the best of 16 start noises by
-simulating each chunk lifts success from 66 % to 82-84 % (`scripts/finish_diagnostics.py best-of`). A
+simulating each chunk lifts success from 66 % to 82-84 % (an oracle measured in docs/findings.md). A
 critic regressing the reward could not rank those chunks (models/README.md), but a chunk's outcome is a
 smooth function of the chunk (shifted by 2 px, the coverage change correlates at 0.97), and contact
 physics looks the same in the block's frame wherever the block lies. So `OutcomeModel` learns there:

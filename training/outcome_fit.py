@@ -15,10 +15,73 @@ import torch
 
 from training.chunk_env import ChunkVectorEnv
 from training.finetune_config import FinetuneConfig
-from training.noise_rl import NoiseAgent, Resumable
 from training.replay import ReplayBuffer
 
-__all__ = ["OutcomeFit"]
+__all__ = ["FlowChooser", "OutcomeFit", "Resumable"]
+
+
+class Resumable:
+    """What a resumable checkpoint of a learner holds: its modules, optimizers and replays, by name."""
+
+    def parts(self) -> tuple[dict, dict, dict]:
+        """(modules, optimizers, replays) by name."""
+        raise NotImplementedError
+
+    def state(self) -> tuple[dict[str, torch.Tensor], dict]:
+        """Tensors and JSON that `load_state` takes back."""
+        from training.run import pack_optimizer
+
+        modules, optimizers, replays = self.parts()
+        tensors = {f"{name}.{k}": v for name, module in modules.items() for k, v in module.state_dict().items()}
+        extra: dict = {"optimizers": {}, "replays": {}}
+        for name, optimizer in optimizers.items():
+            packed, extra["optimizers"][name] = pack_optimizer(optimizer, prefix=f"opt.{name}")
+            tensors.update(packed)
+        for name, replay in replays.items():
+            packed, extra["replays"][name] = replay.state(prefix=f"replay.{name}")
+            tensors.update(packed)
+        return tensors, extra
+
+    def load_state(self, tensors: dict[str, torch.Tensor], extra: dict) -> None:
+        """Restore what `state` saved."""
+        from training.run import unpack_optimizer
+
+        modules, optimizers, replays = self.parts()
+        for name, module in modules.items():
+            module.load_state_dict({k[len(name) + 1 :]: v for k, v in tensors.items() if k.startswith(name + ".")})
+        for name, optimizer in optimizers.items():
+            unpack_optimizer(optimizer, tensors, extra["optimizers"][name], prefix=f"opt.{name}")
+        for name, replay in replays.items():
+            replay.load_state(f"replay.{name}", tensors, extra["replays"][name])
+
+
+class FlowChooser:
+    """The frozen flow with a fresh (or warm) outcome chooser: what the fit trains and evaluates."""
+
+    def __init__(self, base: torch.nn.Module, base_card: dict, cfg: FinetuneConfig) -> None:
+        from training.policies import ActingPolicy, build_policy
+
+        arch = base_card["architecture"]
+        if arch.get("onepass_dims") is not None:
+            raise ValueError(f"{cfg.init}: a one-pass student is not a plain flow; fine-tune a plain flow or an outcome chooser")
+        # An outcome chooser may start another outcome fit (its model warm, its stretches and candidates as configured).
+        if arch.get("outcome_dims") is not None and list(arch["outcome_dims"]) != cfg.outcome_dims_list():
+            raise ValueError(f"{cfg.init}: its outcome chooser has outcome_dims {arch['outcome_dims']}; --outcome-dims must match to start from it")
+        added = {"outcome_dims": cfg.outcome_dims_list(), "outcome_candidates": cfg.candidates, "outcome_stretches": cfg.stretches_list()}
+        self.policy = build_policy("flow", **{**base_card["architecture"], **added})
+        # the candidate maps follow from the candidate count (a fixed seed), so a warm start takes them as configured
+        missing, unexpected = self.policy.load_state_dict({k: v for k, v in base.state_dict().items() if k != "outcome.rotations"}, strict=False)
+        self.policy.normalizer.set(base.normalizer)
+        if unexpected or any(not k.startswith("outcome.") for k in missing):
+            raise ValueError(f"{cfg.init}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
+        # The flow stays frozen because only the outcome model is optimized: no loss reaches the flow (rollouts
+        # run without grad), and leaving requires_grad alone keeps the card's parameter count whole.
+        self.policy.eval()
+        self.normalization = self.policy.normalizer.to_dict()
+        self.num_steps = cfg.flow_num_steps
+        self.acting = ActingPolicy(self.policy, num_steps=cfg.flow_num_steps)
+        self.noise_scale = self.policy.noise_scale
+        self.chunk_shape = (self.policy.horizon, self.policy.action_dim)
 
 
 class OutcomeFit(Resumable):
@@ -26,7 +89,7 @@ class OutcomeFit(Resumable):
 
     FIELDS = {"enc": 0, "x0": 0, "end": 0}  # state [5], chunk [H * A] in env units, state after the chunk [5]
 
-    def __init__(self, agent: NoiseAgent, cfg: FinetuneConfig, generator: torch.Generator) -> None:
+    def __init__(self, agent: FlowChooser, cfg: FinetuneConfig, generator: torch.Generator) -> None:
         self.agent, self.cfg, self.generator = agent, cfg, generator
         self.selector = agent.policy.outcome
         self.opt = torch.optim.Adam(self.selector.model.parameters(), lr=cfg.critic_lr)

@@ -203,9 +203,6 @@ class FlowPolicy(_ChunkPolicy):
         time_embedding_dim: int = DEFAULT_TIME_EMBEDDING_DIM,
         action_frame: str = "absolute",
         noise_scale: float = 1.0,
-        steering_dims: Sequence[int] | None = None,
-        selector_dims: Sequence[int] | None = None,
-        selector_candidates: int = 16,
         outcome_dims: Sequence[int] | None = None,
         outcome_candidates: int = 16,
         outcome_stretches: Sequence[float] = (1.0,),
@@ -224,8 +221,7 @@ class FlowPolicy(_ChunkPolicy):
         encoded_dim = self._init_common(check_architecture(
             hidden_dims, dropout, horizon, action_dim, state_dim, angle_encoding=angle_encoding, state_skip=state_skip,
             time_embedding=time_embedding, time_embedding_dim=time_embedding_dim, action_frame=action_frame,
-            noise_scale=noise_scale, steering_dims=steering_dims, selector_dims=selector_dims,
-            selector_candidates=selector_candidates, outcome_dims=outcome_dims, outcome_candidates=outcome_candidates,
+            noise_scale=noise_scale, outcome_dims=outcome_dims, outcome_candidates=outcome_candidates,
             outcome_stretches=list(outcome_stretches), onepass_dims=onepass_dims, onepass_scorer_dims=onepass_scorer_dims,
             onepass_scorer_shared=onepass_scorer_shared, onepass_scorer_context=onepass_scorer_context, onepass_scorer_top=onepass_scorer_top,
             onepass_ranker_dims=onepass_ranker_dims, onepass_scorer_stretches=list(onepass_scorer_stretches), prev_state=prev_state,
@@ -243,18 +239,6 @@ class FlowPolicy(_ChunkPolicy):
             time_dim = 1
         chunk_dim = horizon * action_dim
         self._init_net(encoded_dim + chunk_dim + time_dim, encoded_dim, chunk_dim)
-        # Learned start noise (training.finetune); None: x0 is noise_scale * noise, as trained.
-        self.steering = None
-        if self._arch["steering_dims"] is not None:
-            from training.steering import NoiseSteering
-
-            self.steering = NoiseSteering(encoded_dim, (horizon, action_dim), self._arch["steering_dims"])
-        # A learned critic choosing the best of K candidate starts (training.finetune --algo qselect).
-        self.selector = None
-        if self._arch["selector_dims"] is not None:
-            from training.selection import NoiseSelector
-
-            self.selector = NoiseSelector(encoded_dim, (horizon, action_dim), self._arch["selector_dims"], self._arch["selector_candidates"])
         # A learned one-chunk model of the block choosing among K integrated chunks (training.finetune --algo outcome).
         self.outcome = None
         if self._arch["outcome_dims"] is not None:
@@ -314,11 +298,7 @@ class FlowPolicy(_ChunkPolicy):
         return self.integrate(state_n, self.start_noise(state_n, noise), num_steps)
 
     def start_noise(self, state_n: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-        """The Euler start x0 [B, H, A] of standard-normal `noise`: scaled, and steered when the policy has steering."""
-        if self.steering is not None:
-            return self.steering(self.encode_state(state_n), noise, self.noise_scale)
-        if self.selector is not None:
-            return self.selector(self.encode_state(state_n), noise, self.noise_scale)
+        """The Euler start x0 [B, H, A] of standard-normal `noise`: scaled by noise_scale."""
         return noise if self.noise_scale == 1.0 else noise * self.noise_scale
 
     def integrate(self, state_n: torch.Tensor, x0: torch.Tensor, num_steps: int = DEFAULT_NUM_STEPS) -> torch.Tensor:

@@ -200,9 +200,7 @@ def reproduce_commands(card: dict[str, Any], run: Path, name: str, int8: bool = 
 
 def score_heldout(model: Path, label: Path, episodes: int, seed: int, envs: list[str], reports: list[dict[str, Any]],
            checkpoint: str, gif: bool = False) -> tuple[dict[str, Any], list[Any]]:
-    """Held-out scores of `model` per env (reports appended, named `label`) and the first env's first-episode frames if `gif`.
-
-    `training.rescore` scores with this too, so a re-scored card reads as a shipped one."""
+    """Held-out scores of `model` per env (reports appended, named `label`) and the first env's first-episode frames if `gif`."""
     scores, frames = {}, []
     policy = load_model(model)
     for env in envs:
