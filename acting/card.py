@@ -71,15 +71,9 @@ class Card:
         return self.data.get("sampler_steps")
 
     @property
-    def one_pass(self) -> bool:
-        """Whether a flow decides in one network pass (a one-pass chooser, `onepass_dims`): it has no Euler steps."""
-        return self.kind == "flow" and self.architecture.get("onepass_dims") is not None
-
-    @property
     def num_steps(self) -> int | None:
-        """Flow steps a chunk takes by default (the exported graph's, else the distilled count, else 10); None for mse and
-        a one-pass flow."""
-        if self.kind != "flow" or self.one_pass:
+        """Flow steps a chunk takes by default (the exported graph's, else the distilled count, else 10); None for mse."""
+        if self.kind != "flow":
             return None
         return (self.data["onnx"] or {}).get("num_steps") or self.sampler_steps or DEFAULT_NUM_STEPS
 
@@ -92,10 +86,8 @@ class Card:
     @property
     def uses_noise(self) -> bool:
         """Whether a flow's actions depend on its start noise: not where the card scales it to 0 (a deterministic student)
-        or an outcome chooser maps it into its candidates; never a one-pass flow."""
+        or an outcome chooser maps it into its candidates."""
         arch = self.architecture
-        if self.one_pass:
-            return False
         if self.kind != "flow" or arch.get("outcome_dims") is not None:
             return self.kind == "flow"
         return float(arch.get("noise_scale", 1.0)) != 0.0
@@ -103,12 +95,10 @@ class Card:
     @property
     def computes(self) -> str:
         """What the policy computes: mse; flow (a flow-matching sampler); flow-chooser (a flow's candidates picked by a learned
-        outcome model); flow-onepass (a one-pass student of a flow)."""
+        outcome model)."""
         arch = self.architecture
         if self.kind != "flow":
             return self.kind
-        if self.one_pass:
-            return "flow-onepass"
         if arch.get("outcome_dims") is not None:
             return "flow-chooser"
         return "flow"
@@ -120,11 +110,9 @@ class Card:
 
     def network_evaluations(self, num_steps: int | None = None) -> int:
         """Network evaluations per chunk: 1 for mse; a flow's step count, and with an outcome chooser over K candidates at
-        S stretches K times that plus the K x S outcome-model passes; 1 for a one-pass flow, 2 with its scoring pass."""
+        S stretches K times that plus the K x S outcome-model passes."""
         if self.kind != "flow":
             return 1
-        if self.one_pass:
-            return 1 if self.architecture.get("onepass_scorer_dims") is None else 2
         steps = num_steps or self.num_steps
         if self.architecture.get("outcome_dims") is None:
             return steps

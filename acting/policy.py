@@ -76,9 +76,6 @@ class Policy:
         """None if a chunk can be sampled in `num_steps` flow steps, else why not."""
         if self.kind != "flow":
             return f"num_steps applies to flow policies; policy {self.name!r} is {self.kind} (one network evaluation per chunk)"
-        if self.card.one_pass:
-            return (f"num_steps does not apply: policy {self.name!r} samples a chunk in one network pass (a distilled chooser, "
-                    f"no Euler steps); omit num_steps")
         trained = self.card.sampler_steps
         if trained is not None and num_steps != trained:
             return (f"num_steps={num_steps} is not available: policy {self.name!r} was distilled to sample in {trained} "

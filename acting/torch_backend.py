@@ -39,11 +39,6 @@ class TorchPolicy(Policy):
 
             require_regular_file(card.stem.with_suffix(".safetensors"), "weights file")
             module = load_acting_policy(card.stem)
-            inputs = ((card.data["onnx"] or {}).get("int8") or {}).get("inputs")
-            if inputs:  # its ONNX graph is int8: play that function, not the float32 module's
-                from training.int8_module import Int8Acting
-
-                module = Int8Acting(module, inputs).eval()
         self.module = module
         self.takes_prev_state = bool(module.policy.architecture.get("prev_state", False))
 

@@ -129,7 +129,7 @@ class PolicyInfo(BaseModel):
 
     name: str
     kind: str = Field(description="what it computes: mse; flow (a flow-matching sampler); flow-chooser (a flow's candidate chunks, "
-                                  "the one a learned outcome model prefers plays); flow-onepass (a one-pass student of a flow)")
+                                  "the one a learned outcome model prefers plays)")
     stochastic: bool = Field(description="whether its actions depend on the request's seed (its noise); false: a seed changes nothing")
     default: bool = Field(description="whether requests without a policy name get it (exactly one policy is the default)")
     num_parameters: int | None = None

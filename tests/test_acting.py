@@ -32,7 +32,7 @@ def test_importing_acting_and_running_onnx_imports_no_torch():
 @pytest.mark.parametrize("folder, model", [("shipped", "flow.onnx"), ("shipped", "flow"), ("shipped", "mse.onnx"), ("shipped", "mse"),
                                            ("chooser", "flow.onnx"), ("chooser", "flow")])
 def test_a_row_depends_on_its_own_state_and_seed_only(folder, model, request):
-    # the shipped student reads no noise; the chooser's rows also depend on their seeds' noise
+    # a flow's rows also depend on their seeds' noise
     policy = acting.load_policy((MODELS if folder == "shipped" else request.getfixturevalue("chooser_models")) / model)
     seeds = [11, 12, 13, 14, 15, 16, 17, 18, 19]
     together = policy.act(STATES, seeds=seeds)
@@ -75,38 +75,30 @@ def test_step_counts_each_backend_can_run(chooser_models):
 
 
 @pytest.mark.parametrize("model", ["flow.onnx", "flow"])
-def test_the_shipped_flow_decides_in_two_passes_without_steps_or_noise(model):
+def test_the_shipped_flow_is_a_sampler_whose_seed_changes_its_actions(model):
     policy = acting.load_policy(MODELS / model)
-    assert policy.kind == "flow" and policy.default_num_steps is None and not policy.uses_noise
-    # 16 hypotheses in one pass, then the scoring pass: whatever num_steps a caller names
-    assert policy.network_evaluations() == policy.network_evaluations(10) == 2
-    for steps in (1, 4, 10):
-        assert "num_steps does not apply" in policy.check_num_steps(steps) and "one network pass" in policy.check_num_steps(steps)
-    with pytest.raises(ValueError, match="num_steps does not apply: policy 'flow' samples a chunk in one network pass"):
-        acting.load_policy(MODELS / model, num_steps=4)
-    # no noise is read: the same actions for any seeds, given noise, or none
+    assert policy.kind == "flow" and policy.card.computes == "flow" and policy.uses_noise
+    assert policy.default_num_steps == policy.network_evaluations() == 10  # it integrates its velocity field in 10 Euler steps
     seeded = policy.act(STATES, seeds=range(9))
-    np.testing.assert_array_equal(seeded, policy.act(STATES, seeds=range(100, 109)))
+    np.testing.assert_array_equal(seeded, policy.act(STATES, seeds=range(9)))
     np.testing.assert_array_equal(seeded, policy.act(STATES, noise=row_noise(range(9))))
-    np.testing.assert_array_equal(seeded, policy.act(STATES))
+    assert np.abs(seeded - policy.act(STATES, seeds=range(100, 109))).max() > 1.0  # other noise, other actions
 
 
 def test_a_graph_runs_unpadded_only_where_its_rows_are_the_same_alone_as_in_a_batch(tmp_path):
-    # The shipped student's export found its rows batch-invariant (its big products are exact integer ones): no padding
-    # wherever this machine's ONNX Runtime agrees on load (its float32 kernels may differ on another CPU).
-    shipped = acting.load_policy(MODELS / "flow.onnx")
-    assert acting.read_card(MODELS / "flow").data["onnx"]["batch_invariant"] is True
-    assert shipped.batch_multiple == (1 if shipped._invariant_here() else 4)
-    assert acting.load_policy(MODELS / "flow").batch_multiple == 4  # torch's float products: padded as ever
-    # mse's float products round a full group of four rows differently: its export says so, and a card claiming otherwise
-    # is checked where it loads, so it stays padded
-    assert acting.read_card(MODELS / "mse").data["onnx"].get("batch_invariant") is not True
+    # A graph runs unpadded when its export found each row the same alone as in a batch and this machine's ONNX Runtime
+    # agrees on load (float32 kernels may round a group of rows otherwise on another CPU); torch always pads.
+    for name in ("flow", "mse", "flow-chooser"):
+        shipped = acting.load_policy(MODELS / f"{name}.onnx")
+        claims = acting.read_card(MODELS / name).data["onnx"].get("batch_invariant") is True
+        assert shipped.batch_multiple == (1 if claims and shipped._invariant_here() else 4)
+    assert acting.load_policy(MODELS / "flow").batch_multiple == 4
+    # a card that claims invariance for a graph whose rows are not is checked where it loads, so it stays padded
     card = _copy(tmp_path, "mse")
     data = json.loads(card.read_text())
     data["onnx"]["batch_invariant"] = True
     card.write_text(json.dumps(data))
     claimed = acting.load_policy(tmp_path / "mse.onnx")
-    assert claimed.batch_multiple == 4
     many = np.random.default_rng(8).uniform(0, 512, (37, 5)).astype(np.float32)
     alone = np.concatenate([claimed.act(many[i : i + 1]) for i in range(37)])
     np.testing.assert_array_equal(alone, claimed.act(many))
@@ -167,7 +159,7 @@ def test_a_flow_whose_start_noise_is_scaled_to_zero_draws_none(tmp_path):
 
 
 def test_a_rollout_with_a_fixed_noise_gives_every_row_that_seeds_noise(chooser_models):
-    policy = acting.load_policy(chooser_models / "flow.onnx")  # the shipped student reads no noise: every row would agree
+    policy = acting.load_policy(chooser_models / "flow.onnx")
     fixed = acting.rollout_act(policy, fixed_noise=12345)
     states = np.repeat(STATES[:1], 4, axis=0)
     out = fixed(states, [1, 2, 3, 4])

@@ -305,7 +305,7 @@ def test_legacy_angle_buffers_are_refused_until_converted(tmp_path: Path, kind: 
         convert(stem)
 
 
-@pytest.mark.parametrize("stem", ["models/flow", "models/mse", "records/flow-agentframe-padend-150k-noise0.6/best", "records/mse-sincos-skip-100k/best"])
+@pytest.mark.parametrize("stem", ["models/flow", "models/mse", "models/flow-chooser"])
 def test_shipped_weights_are_converted(stem: str) -> None:
     policy, card = load_checkpoint(REPO / stem)
     assert policy.normalizer.to_dict() == card["normalization"]

@@ -20,7 +20,7 @@ from training.chunk_env import ChunkVectorEnv
 from training.export import export_onnx
 from training.finetune import finetune
 from training.finetune_config import FinetuneConfig, parse_config
-from training.policies import ActingPolicy, build_policy
+from training.policies import build_policy
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED = REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"  # the plain flow that fine-tuning starts from

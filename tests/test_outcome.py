@@ -132,8 +132,6 @@ def test_outcome_keys_are_validated() -> None:
         build_policy("flow", outcome_dims=[0])
     with pytest.raises(ValueError, match="outcome_candidates"):
         build_policy("flow", outcome_dims=[8], outcome_candidates=0)
-    with pytest.raises(ValueError, match="one of outcome_dims and onepass_dims"):
-        build_policy("flow", outcome_dims=[8], onepass_dims=[8])
     for bad in ([1.5, 1.0], [], [1.0, 0.0], [1.0, 5.0], "1"):
         with pytest.raises(ValueError, match="outcome_stretches"):
             build_policy("flow", outcome_dims=[8], outcome_stretches=bad)
@@ -229,9 +227,6 @@ def test_setting_the_candidate_count_keeps_every_learned_weight_and_the_first_ma
     assert torch.equal(after["outcome.rotations"][:4], before["outcome.rotations"])
     assert loaded["config"] == {"algo": "outcome", "candidates": 4}  # the fit's own config stays
     assert reproduce_commands(loaded, Path("runs/c"), "flow")[1].endswith("--outcome-candidates 8")
-    assert reproduce_commands(loaded, Path("runs/c"), "flow", int8=True)[1].endswith("--outcome-candidates 8 --int8")
-    distilled = {**loaded, "reproduce": {"distill": "python -m training.distill --student multichoice"}}
-    assert reproduce_commands(distilled, Path("runs/d"), "flow", int8=True)[0] == "python -m training.distill --student multichoice"
     save_checkpoint(tmp_path / "plain", *load_checkpoint(SHIPPED)[:1])
     with pytest.raises(ValueError, match="outcome chooser"):
         set_outcome_candidates(tmp_path / "plain", 8)

@@ -180,11 +180,3 @@ def test_onnx_of_a_pace_input_matches_torch_near_and_far(tmp_path, replay) -> No
     with torch.inference_mode():
         want = load_acting_policy(stem)(torch.from_numpy(states), torch.from_numpy(noise)).numpy()
     assert np.abs(got - want).max() < 1e-3
-
-
-def test_commands_that_act_from_the_state_alone_refuse_policies_with_more_inputs(exported, tmp_path) -> None:
-    from training.distill import DistillConfig, distill
-
-    with pytest.raises(ValueError, match="prev_state beside the state, which distillation does not carry"):
-        distill(DistillConfig(teacher=str(exported), name="refused", out_dir=str(tmp_path), progress=False))
-    assert not (tmp_path / "refused").exists()

@@ -213,21 +213,16 @@ def test_concurrent_requests_are_batched_and_independent(server: UvicornProcess)
 @pytest.mark.parametrize("which", ["test", "shipped", "chooser"], ids=["test-models", "shipped-models", "chooser-models"])
 def test_torch_backend_server_agrees_with_onnx(which: str, request: pytest.FixtureRequest) -> None:
     """PUSHT_BACKEND=torch answers like the onnx backend (same seeds), and runs any num_steps of a flow that has steps."""
-    from acting import load_policy
 
     models_dir = request.getfixturevalue("chooser_models") if which == "chooser" else _models_dir(which, request)
-    one_pass = load_policy(models_dir / "flow.json", backend="onnx").default_num_steps is None
     answers = {}
     for backend in ("onnx", "torch"):
         with UvicornProcess({"PUSHT_MODELS_DIR": str(models_dir), "PUSHT_BACKEND": backend}) as srv:
             answers[backend] = [act(srv.url, policy=name, states=STATES, seed=11).json() for name in ("mse", "flow")]
             if backend == "torch":
                 five = act(srv.url, policy="flow", states=STATES, seed=11, num_steps=5)
-                if one_pass:  # the shipped student has no steps to change: refused on torch as on onnx
-                    assert five.status_code == 422 and "num_steps does not apply" in five.text, five.text
-                else:
-                    assert five.status_code == 200, five.text
-                    assert five.json()["actions"] != answers["torch"][1]["actions"]
+                assert five.status_code == 200, five.text
+                assert five.json()["actions"] != answers["torch"][1]["actions"]
     for onnx_answer, torch_answer in zip(answers["onnx"], answers["torch"], strict=True):
         assert (onnx_answer["backend"], torch_answer["backend"]) == ("onnx", "torch")
         np.testing.assert_allclose(onnx_answer["actions"], torch_answer["actions"], atol=1e-3, rtol=0)

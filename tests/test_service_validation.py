@@ -75,7 +75,6 @@ BAD_RAW = [
 
 @pytest.mark.slow
 def test_every_bad_request_gets_a_json_4xx_and_the_server_keeps_answering(server: UvicornProcess) -> None:
-    from acting import read_card
 
     cases = [(name, json.dumps(body).encode(), 422) for name, body in BAD_BODIES] + BAD_RAW
     with httpx.Client(base_url=server.url, timeout=10) as client:
@@ -87,10 +86,7 @@ def test_every_bad_request_gets_a_json_4xx_and_the_server_keeps_answering(server
         unknown = client.post("/act", json={"policy": "nope", "state": STATE}).json()["detail"]
         assert "nope" in unknown and "flow" in unknown and "mse" in unknown
         steps = json.dumps(client.post("/act", json={"policy": "flow", "state": STATE, "num_steps": 5}).json())
-        if read_card(server.models_dir / "flow.json").one_pass:  # the shipped student: no steps at all
-            assert "num_steps does not apply" in steps and "one network pass" in steps
-        else:
-            assert "onnx backend" in steps and "10" in steps
+        assert "onnx backend" in steps and "10" in steps
         assert client.post("/act", json={"policy": "flow", "state": STATE}).status_code == 200
 
 
@@ -204,14 +200,11 @@ def test_num_steps_where_the_sampler_has_none_gets_a_422_and_policies_say_the_co
     from acting import read_card
 
     arch = read_card(server.models_dir / "flow.json").architecture
-    if arch.get("onepass_dims"):  # the shipped student: its hypotheses in one pass, plus the scoring pass; no steps
-        assert policies["flow"]["num_steps"] is None
-        assert policies["flow"]["network_evaluations"] == (2 if arch.get("onepass_scorer_dims") else 1)
-    else:  # a chooser picks among K candidates at S stretches: K x 10 flow steps, K x S outcome-model passes
-        candidates = arch.get("outcome_candidates", 16) if arch.get("outcome_dims") else 1
-        stretches = len(arch.get("outcome_stretches", [1.0])) if arch.get("outcome_dims") else 0
-        assert policies["flow"]["num_steps"] == 10
-        assert policies["flow"]["network_evaluations"] == candidates * 10 + candidates * stretches
+    # a chooser picks among K candidates at S stretches: K x 10 flow steps, K x S outcome-model passes
+    candidates = arch.get("outcome_candidates", 16) if arch.get("outcome_dims") else 1
+    stretches = len(arch.get("outcome_stretches", [1.0])) if arch.get("outcome_dims") else 0
+    assert policies["flow"]["num_steps"] == 10
+    assert policies["flow"]["network_evaluations"] == candidates * 10 + candidates * stretches
 
 
 def test_the_single_state_shortcut_accepts_exactly_what_the_request_model_accepts() -> None:

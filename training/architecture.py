@@ -22,13 +22,12 @@ DEFAULT_TIME_EMBEDDING_DIM = 32
 _BASE_KEYS = ("hidden_dims", "dropout", "horizon", "action_dim", "state_dim")
 MSE_ARCH_KEYS = _BASE_KEYS + ("angle_encoding", "state_skip", "action_frame", "prev_state", "pace_input", "acting_pace")
 FLOW_ARCH_KEYS = MSE_ARCH_KEYS + ("time_embedding", "time_embedding_dim", "noise_scale",
-                                  "outcome_dims", "outcome_candidates", "outcome_stretches", "onepass_dims", "onepass_scorer_dims",
-                                  "onepass_scorer_shared", "onepass_scorer_context", "onepass_scorer_stretches", "onepass_scorer_top", "onepass_ranker_dims")
+                                  "outcome_dims", "outcome_candidates", "outcome_stretches")
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 _VARIANT_DEFAULTS = {"angle_encoding": "raw", "state_skip": False, "action_frame": "absolute", "time_embedding": "scalar",
                      "time_embedding_dim": DEFAULT_TIME_EMBEDDING_DIM, "noise_scale": 1.0,
-                     "outcome_dims": None, "outcome_candidates": 16, "outcome_stretches": [1.0], "onepass_dims": None,
-                     "onepass_scorer_dims": None, "onepass_scorer_shared": False, "onepass_scorer_context": True, "onepass_scorer_stretches": [1.0], "onepass_scorer_top": None, "onepass_ranker_dims": None, "prev_state": False, "pace_input": False, "acting_pace": None}
+                     "outcome_dims": None, "outcome_candidates": 16, "outcome_stretches": [1.0],
+                     "prev_state": False, "pace_input": False, "acting_pace": None}
 
 
 def architecture_dict(arch: dict[str, Any]) -> dict[str, Any]:
@@ -63,7 +62,7 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale <= 10:
             raise ValueError(f"noise_scale must be a number in [0, 10], got {scale!r}")
         variants["noise_scale"] = float(scale)
-    for key in ("outcome_dims", "onepass_dims", "onepass_scorer_dims", "onepass_ranker_dims"):
+    for key in ("outcome_dims",):
         dims = variants.get(key)
         if dims is None:
             continue
@@ -75,34 +74,14 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
     k = variants.get("outcome_candidates", 16)
     if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 256:
         raise ValueError(f"outcome_candidates must be an int in [1, 256], got {k!r}")
-    for key in ("outcome_stretches", "onepass_scorer_stretches"):
+    for key in ("outcome_stretches",):
         if key in variants:
             variants[key] = check_stretches(variants[key], key)
-    if variants.get("outcome_dims") is not None and variants.get("onepass_dims") is not None:
-        raise ValueError("a flow takes one of outcome_dims and onepass_dims, got outcome_dims and onepass_dims")
-    if variants.get("onepass_scorer_dims") is not None and variants.get("onepass_dims") is None:
-        raise ValueError("onepass_scorer_dims scores a one-pass head's candidates: it needs onepass_dims")
-    if variants.get("onepass_scorer_shared") and variants.get("onepass_scorer_dims") is None:
-        raise ValueError("onepass_scorer_shared shapes a second pass: it needs onepass_scorer_dims")
-    if variants.get("onepass_scorer_context") is False and not variants.get("onepass_scorer_shared"):
-        raise ValueError("onepass_scorer_context (the map of the hypotheses' mean) belongs to a shared second pass: it needs onepass_scorer_shared")
-    top = variants.get("onepass_scorer_top")
-    if top is not None:
-        k = variants.get("outcome_candidates", 16)
-        if isinstance(top, bool) or not isinstance(top, int) or not 1 <= top < k:
-            raise ValueError(f"onepass_scorer_top must be null or an int in [1, {k - 1}] (fewer than the hypotheses), got {top!r}")
-        if variants.get("onepass_scorer_context", True) or variants.get("onepass_scorer_stretches", [1.0]) != [1.0]:
-            raise ValueError("onepass_scorer_top has a second pass score only the first pass's best hypotheses, each alone: it needs "
-                             "onepass_scorer_shared without onepass_scorer_context, and no onepass_scorer_stretches")
-    if variants.get("onepass_ranker_dims") is not None and top is None:
-        raise ValueError("onepass_ranker_dims picks the hypotheses a second pass scores: it needs onepass_scorer_top")
-    if variants.get("onepass_scorer_stretches", [1.0]) != [1.0] and variants.get("onepass_scorer_dims") is None:
-        raise ValueError("onepass_scorer_stretches are what a second pass scores: it needs onepass_scorer_dims")
     if "action_frame" in variants and variants["action_frame"] not in ACTION_FRAMES:
         raise ValueError(f"action_frame must be one of {ACTION_FRAMES}, got {variants['action_frame']!r}")
     if "angle_encoding" in variants and variants["angle_encoding"] not in ANGLE_ENCODINGS:
         raise ValueError(f"angle_encoding must be one of {ANGLE_ENCODINGS}, got {variants['angle_encoding']!r}")
-    for key in ("state_skip", "prev_state", "pace_input", "onepass_scorer_shared", "onepass_scorer_context"):
+    for key in ("state_skip", "prev_state", "pace_input"):
         if key in variants and not isinstance(variants[key], bool):
             raise ValueError(f"{key} must be true or false, got {variants[key]!r}")
     if variants.get("acting_pace") is not None:

@@ -179,12 +179,6 @@ def set_outcome_candidates(stem: str | Path, candidates: int) -> dict[str, Any]:
     return save_checkpoint(stem, resized, **{k: v for k, v in card.items() if k not in derived})
 
 
-def set_scorer_top(stem: str | Path, top: int | None) -> dict[str, Any]:
-    """Set how many of a scoring student's hypotheses (the first pass's best-scored) its row-wise second pass scores, None for
-    all; returns the card. Each is scored alone, so no weight depends on it."""
-    return _set_acting_key(stem, "onepass_scorer_top", top, None)
-
-
 def _set_acting_key(stem: str | Path, key: str, value: Any, default: Any) -> dict[str, Any]:
     """Set how a flow checkpoint acts (an architecture key the weights do not depend on), validated; returns the card."""
     stem = checkpoint_stem(stem)

@@ -15,8 +15,6 @@ def plot_learning_curve(records: list[dict[str, Any]], path: str | Path) -> None
 
     train = [r for r in records if r["type"] == "train"]
     evals = [r for r in records if r["type"] == "eval"]
-    if not train:  # a scoring-pass run (training.distill_scorer): its rounds' steps laid end to end
-        train, evals = _scorer_series(records)
     fig, (ax_loss, ax_eval) = plt.subplots(1, 2, figsize=(11, 4))
     ax_loss.plot([r["step"] for r in train], [r["loss"] for r in train], lw=1)
     ax_loss.set(xlabel="step", ylabel="training loss", title="loss", yscale="log")
@@ -38,17 +36,3 @@ def plot_learning_curve(records: list[dict[str, Any]], path: str | Path) -> None
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
-
-
-def _scorer_series(records: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """A scoring-pass run's loss records and evaluations, their steps counted from its first round on."""
-    train, evals, offset, last = [], [], 0, 0
-    for r in records:
-        if r["type"] == "scorer":
-            if r["step"] < last:  # a new round starts counting again
-                offset += last
-            last = r["step"]
-            train.append({**r, "step": offset + r["step"]})
-        elif r["type"] == "scorer_eval":
-            evals.append({**r, "step": offset + last})
-    return train, evals

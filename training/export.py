@@ -29,18 +29,13 @@ from acting.onnx_backend import batch_invariant, onnx_session
 from pusht.spec import DEFAULT_NUM_STEPS
 from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, update_card
 from training.cli import HelpFormatter
-from training.onepass_graph import lean_graph
 from training.policies import ActingPolicy
-from training.quantize import PARTS, agreement, quantize_hidden
 
 OPSET = 18
 # Exported and torch actions must agree to this many pixels on random states (float32 rounding only).
 VERIFY_ATOL = 1e-3
 INVARIANCE_CHECK_SIZES = (2, 3, 4, 5, 8, 37)
 """batch sizes whose rows `rows_batch_invariant` compares with the same rows alone"""
-CALIBRATION_DATA = Path(__file__).resolve().parents[1] / "data" / "pusht_lowdim.zarr"
-CALIBRATION_STATES = 4096
-"""--int8 calibrates each layer's input scale on this many states of the project's demonstrations"""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -57,8 +52,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num-steps", type=int, default=None, help=f"flow: Euler steps unrolled into the graph (default: a distilled flow's own count, else {DEFAULT_NUM_STEPS})")
     parser.add_argument("--triton-repo", default=None, help="write each export as a Triton model repository entry DIR/NAME/1/model.onnx with its config.pbtxt instead")
     parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
-    parser.add_argument("--int8", action="store_true", help="a scoring student: its hidden layers' matrix products in int8 (training.quantize), checked against the float32 graph; a card whose graph is int8 gets it again without this")
-    parser.add_argument("--int8-parts", default=None, help="with --int8: comma-separated parts to quantize (gen, sco, frame, or one layer as gen.N / sco.N); default: gen,sco (frame stays float32 unless named)")
     args = parser.parse_args(argv)
 
     if args.checkpoint is not None:
@@ -74,12 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     status = 0
     for stem, out in jobs:
         try:
-            # a card whose graph was quantized gets its int8 graph again: a float32 one would play other actions
-            if args.int8_parts:
-                int8 = tuple(args.int8_parts.split(","))
-            else:
-                int8 = args.int8 or _parts_of((read_card(stem).data.get("onnx") or {}).get("int8"))
-            info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset, int8=int8)
+            info = export_onnx(stem, out, num_steps=args.num_steps, opset=args.opset)
             if args.triton_repo is not None:
                 from training.triton_repo import write_config
 
@@ -89,26 +77,20 @@ def main(argv: list[str] | None = None) -> int:
             status = 2
             continue
         note = "card updated" if info["card_updated"] else "not beside the card: card left unchanged"
-        int8 = f"; int8: { {k: v for k, v in info['int8'].items() if k != 'inputs'} }" if "int8" in info else ""
-        print(f"{stem} -> {out} (inputs {info['inputs']}, outputs {info['outputs']}, opset {info['opset']}, max diff {info['max_abs_diff']:.2e} px{int8}; {note})")
+        print(f"{stem} -> {out} (inputs {info['inputs']}, outputs {info['outputs']}, opset {info['opset']}, max diff {info['max_abs_diff']:.2e} px; {note})")
     return status
 
 
 def default_num_steps(stem: str | Path) -> int:
-    """The Euler steps to unroll for a checkpoint: a distilled flow's own count (`sampler_steps`), 1 for a one-pass flow
-    (it has none: one network pass), else DEFAULT_NUM_STEPS."""
-    card = read_card(checkpoint_stem(stem))
-    return 1 if card.one_pass else int(card.sampler_steps or DEFAULT_NUM_STEPS)
+    """The Euler steps to unroll for a checkpoint: a distilled flow's own count (`sampler_steps`), else DEFAULT_NUM_STEPS."""
+    return int(read_card(checkpoint_stem(stem)).sampler_steps or DEFAULT_NUM_STEPS)
 
 
-def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int | None = None, opset: int = OPSET,
-                int8: bool | tuple[str, ...] = False) -> dict[str, Any]:
+def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int | None = None, opset: int = OPSET) -> dict[str, Any]:
     """Export checkpoint `stem` to `out_path` (default STEM.onnx) and verify it; returns the onnx info (plus max_abs_diff).
 
-    `num_steps=None` unrolls the checkpoint's own count (`default_num_steps`). A scoring student exports as its lean
-    graph (`training.onepass_graph`), verified against the module like every export; `int8` then quantizes its
-    hidden layers (`training.quantize`; a tuple: those `PARTS` or layers only) and records how closely the result follows the
-    float32 graph. The card also records whether each row's actions are the same alone as in a batch (`batch_invariant`).
+    `num_steps=None` unrolls the checkpoint's own count (`default_num_steps`). The card also records whether each row's
+    actions are the same alone as in a batch (`batch_invariant`).
 
     The card records the export only when the file lies beside it, where the service looks for it;
     an export elsewhere leaves the card as it was.
@@ -125,10 +107,7 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
         raise ValueError(f"{out}: the output file must end in .onnx")
     acting = load_acting_policy(stem, num_steps=num_steps).eval()
     inputs = graph_inputs(acting)
-    lean = lean_graph(acting.policy)
-    if int8 and lean is None:
-        raise ValueError(f"{stem}: --int8 quantizes a scoring student's hidden layers; this checkpoint is no scoring student")
-    graph = _GraphModule(acting, inputs, lean).eval()
+    graph = _GraphModule(acting, inputs).eval()
     example = _example_inputs(acting, batch=4, seed=0)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp.onnx")
@@ -138,7 +117,6 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
         except Exception as exc:  # torch.export / onnxscript raise their own error types
             raise ValueError(f"{stem}: ONNX export failed: {type(exc).__name__}: {exc}") from exc
         max_diff = verify_onnx(tmp, acting)
-        quantized = _quantize(tmp, acting, PARTS if int8 is True else int8) if int8 else None
         invariant = rows_batch_invariant(tmp, acting)
         opset = _model_opset(tmp)  # the exporter may raise a requested opset; record what the file has
         tmp.replace(out)
@@ -152,8 +130,6 @@ def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps:
         "opset": opset,
         "batch_invariant": invariant,
     }
-    if quantized is not None:
-        info["int8"] = quantized
     beside_card = out.resolve().parent == stem.resolve().parent
     if beside_card:
         update_card(stem, onnx=info)
@@ -203,31 +179,6 @@ def rows_batch_invariant(path: str | Path, acting: ActingPolicy, rows: int = 512
     return batch_invariant(run, example["state"], example.get("noise"), INVARIANCE_CHECK_SIZES)
 
 
-def _parts_of(int8: dict | None) -> bool | tuple[str, ...]:
-    """What a card's int8 graph quantized, as `quantize_hidden` parts (its layers by name), False for a float32 graph."""
-    if not int8:
-        return False
-    return tuple(name.removeprefix("lean.").removesuffix(".weight") for name in int8["layers"])
-
-
-def _quantize(path: Path, acting: ActingPolicy, parts: tuple[str, ...], rows: int = 2048) -> dict[str, Any]:
-    """Quantize the file's hidden layers in place, calibrated on `CALIBRATION_STATES` states of the demonstrations (where
-    policies go: random states reach activations no episode does); their names and the agreement with the float32 graph on
-    `rows` other states of them."""
-    from training.data import load_replay
-
-    shown = load_replay(CALIBRATION_DATA).states.astype(np.float32)
-    pick = np.random.default_rng(0).permutation(len(shown))
-    calibration, check = shown[pick[:CALIBRATION_STATES]], shown[pick[CALIBRATION_STATES : CALIBRATION_STATES + rows]]
-
-    def feeds(states: np.ndarray) -> dict[str, np.ndarray]:
-        return {"state": states, "noise": np.zeros((len(states), acting.policy.horizon, acting.policy.action_dim), np.float32)}
-
-    reference = onnx_session(path).run(["actions"], feeds(check))[0]
-    inputs = quantize_hidden(path, feeds(calibration), parts)
-    return {"layers": list(inputs), "inputs": inputs, **agreement(reference, onnx_session(path).run(["actions"], feeds(check))[0])}
-
-
 def _model_opset(path: Path) -> int:
     import onnx
 
@@ -244,16 +195,13 @@ def graph_inputs(acting: ActingPolicy) -> list[str]:
 class _GraphModule(torch.nn.Module):
     """The exported signature: forward(*inputs) in the order `graph_inputs` names them."""
 
-    def __init__(self, acting: ActingPolicy, inputs: list[str], lean: torch.nn.Module | None = None) -> None:
+    def __init__(self, acting: ActingPolicy, inputs: list[str]) -> None:
         super().__init__()
         self.acting = acting
         self.inputs = inputs
-        self.lean = lean
 
     def forward(self, *args: torch.Tensor) -> torch.Tensor:
         named = dict(zip(self.inputs, args))
-        if self.lean is not None:  # the same function as `acting`, in fewer graph nodes
-            return self.lean(named["state"], named["noise"])
         return self.acting(named["state"], named.get("noise"), prev_state=named.get("prev_state"))
 
 

@@ -17,9 +17,6 @@ PROG = "python -m training.finetune"
 RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_every")
 # Noise-space PPO (DSRL) and a Q-critic picking start noises were tried and dropped (docs/findings.md).
 ALGOS = ("outcome",)
-# The outcome chooser (64 candidates x 10 flow steps, each at 4 stretches), shipped as models/flow before the one-pass student
-# distilled from it: the default teacher of distillation.
-CHOOSER = "records/flow-outcome16-stretch/last"
 
 
 @dataclass

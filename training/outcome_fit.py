@@ -62,8 +62,6 @@ class FlowChooser:
         from training.policies import ActingPolicy, build_policy
 
         arch = base_card["architecture"]
-        if arch.get("onepass_dims") is not None:
-            raise ValueError(f"{cfg.init}: a one-pass student is not a plain flow; fine-tune a plain flow or an outcome chooser")
         # An outcome chooser may start another outcome fit (its model warm, its stretches and candidates as configured).
         if arch.get("outcome_dims") is not None and list(arch["outcome_dims"]) != cfg.outcome_dims_list():
             raise ValueError(f"{cfg.init}: its outcome chooser has outcome_dims {arch['outcome_dims']}; --outcome-dims must match to start from it")

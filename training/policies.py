@@ -206,13 +206,6 @@ class FlowPolicy(_ChunkPolicy):
         outcome_dims: Sequence[int] | None = None,
         outcome_candidates: int = 16,
         outcome_stretches: Sequence[float] = (1.0,),
-        onepass_dims: Sequence[int] | None = None,
-        onepass_scorer_dims: Sequence[int] | None = None,
-        onepass_scorer_shared: bool = False,
-        onepass_scorer_context: bool = True,
-        onepass_scorer_top: int | None = None,
-        onepass_ranker_dims: Sequence[int] | None = None,
-        onepass_scorer_stretches: Sequence[float] = (1.0,),
         prev_state: bool = False,
         pace_input: bool = False,
         acting_pace: Sequence[float] | None = None,
@@ -222,9 +215,7 @@ class FlowPolicy(_ChunkPolicy):
             hidden_dims, dropout, horizon, action_dim, state_dim, angle_encoding=angle_encoding, state_skip=state_skip,
             time_embedding=time_embedding, time_embedding_dim=time_embedding_dim, action_frame=action_frame,
             noise_scale=noise_scale, outcome_dims=outcome_dims, outcome_candidates=outcome_candidates,
-            outcome_stretches=list(outcome_stretches), onepass_dims=onepass_dims, onepass_scorer_dims=onepass_scorer_dims,
-            onepass_scorer_shared=onepass_scorer_shared, onepass_scorer_context=onepass_scorer_context, onepass_scorer_top=onepass_scorer_top,
-            onepass_ranker_dims=onepass_ranker_dims, onepass_scorer_stretches=list(onepass_scorer_stretches), prev_state=prev_state,
+            outcome_stretches=list(outcome_stretches), prev_state=prev_state,
             pace_input=pace_input, acting_pace=acting_pace))
         # Sampling only (training draws x0 ~ N(0, I)): starting closer to the mean trades diversity
         # for precision, chosen by rollouts on non-held-out seeds (models/README.md).
@@ -246,16 +237,6 @@ class FlowPolicy(_ChunkPolicy):
 
             self.outcome = OutcomeSelector((horizon, action_dim), self._arch["outcome_dims"], self._arch["outcome_candidates"],
                                            self._arch["outcome_stretches"])
-        # The chooser's whole decision (K candidates, K x S scores) from one network pass (training.distill --student one-pass):
-        # sampling then takes no Euler steps; the flow's own network stays, the one the candidates were integrated by.
-        self.onepass = None
-        if self._arch["onepass_dims"] is not None:
-            from training.onepass import OnePassChooser
-
-            self.onepass = OnePassChooser(encoded_dim, (horizon, action_dim), self._arch["onepass_dims"],
-                                          self._arch["outcome_candidates"], self._arch["outcome_stretches"], self._arch["onepass_scorer_dims"],
-                                          self._arch["onepass_scorer_shared"], self._arch["onepass_scorer_stretches"],
-                                          self._arch["onepass_scorer_context"], self._arch["onepass_scorer_top"], self._arch["onepass_ranker_dims"])
 
     def forward(self, state_n: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         """Velocity [B, H, A] at noisy normalized chunks x_t [B, H, A] and times t [B] or [B, 1], given normalized states [B, S]."""
@@ -293,8 +274,6 @@ class FlowPolicy(_ChunkPolicy):
             raise ValueError(f"noise must have shape {list(shape)}, got {list(noise.shape)}")
         if self.outcome is not None:
             return self.outcome.best_chunk(self, state_n, noise, num_steps)
-        if self.onepass is not None:
-            return self.onepass.best_chunk(self, state_n, noise)
         return self.integrate(state_n, self.start_noise(state_n, noise), num_steps)
 
     def start_noise(self, state_n: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import shutil
 import sys
 import time
 import tomllib
@@ -192,7 +191,7 @@ def _settings_fields(run: str) -> set[str]:
         from training.finetune_config import FinetuneConfig
 
         return {f.name for f in fields(FinetuneConfig)}
-    return {"episodes", "envs", "int8", "seed"}
+    return {"episodes", "envs", "seed"}
 
 
 def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
@@ -233,7 +232,7 @@ def scaled(stage: Stage, scale: float) -> dict[str, Any]:
     return settings
 
 
-SHIP_DEFAULTS = {"episodes": 500, "envs": ["pusht", "gym-pusht"], "int8": False, "seed": None}
+SHIP_DEFAULTS = {"episodes": 500}
 
 
 def _default(cls: type, name: str) -> Any:

@@ -85,7 +85,7 @@ def ship(ctx: StageContext) -> StageOutcome:
     from training.ship import ship as ship_run
 
     started = time.perf_counter()
-    settings = {"episodes": 500, "envs": ["pusht", "gym-pusht"], "int8": False, "seed": HELD_OUT_SEED} | ctx.settings
+    settings = {"episodes": 500, "envs": ["pusht", "gym-pusht"], "seed": HELD_OUT_SEED} | ctx.settings
     copy = ctx.stage_dir / ctx.recipe.policy
     if ctx.stage_dir.exists():
         shutil.rmtree(ctx.stage_dir)
@@ -95,7 +95,7 @@ def ship(ctx: StageContext) -> StageOutcome:
             shutil.copyfile(ctx.source_dir / name, copy / name)
     _set_acting(copy / "last", ctx.stage.acting)
     reports = ship_run(copy, ctx.recipe.policy, ctx.options.models_dir, settings["episodes"], settings["seed"], settings["envs"],
-                       note=ctx.recipe.description, records_dir=ctx.options.records_dir, force=True, int8=settings["int8"])
+                       note=ctx.recipe.description, records_dir=ctx.options.records_dir, force=True)
     final = {r["env"]: r for r in reports if r["checkpoint"] == "final"}
     score = final.get("gym-pusht") or next(iter(final.values()))
     wall = time.perf_counter() - started

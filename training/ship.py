@@ -51,11 +51,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="flow with an outcome chooser: set how many candidate chunks it integrates, like --noise-scale")
     parser.add_argument("--note", default="", help="what changed from the published recipe and why (stored in the card)")
     parser.add_argument("--force", action="store_true", help="replace MODELS_DIR/NAME even if it scores better on the held-out seeds")
-    parser.add_argument("--int8", action="store_true", help="a scoring student: export its hidden layers' matrix products in int8 (training.export --int8)")
     args = parser.parse_args(argv)
     try:
         lines = ship(Path(args.run), args.name, Path(args.models_dir), args.episodes, args.seed, args.envs, args.note,
-                     args.noise_scale, Path(args.records_dir), args.force, args.acting_pace, args.outcome_candidates, args.int8)
+                     args.noise_scale, Path(args.records_dir), args.force, args.acting_pace, args.outcome_candidates)
         for line in lines:
             print(json.dumps(line))
     except (ValueError, FileNotFoundError) as exc:
@@ -77,12 +76,11 @@ def ship(
     force: bool = False,
     acting_pace: list[float] | None = None,
     outcome_candidates: int | None = None,
-    int8: bool = False,
 ) -> list[dict[str, Any]]:
     """Record `run` in `records_dir`, ship its final checkpoint as `models_dir/name` if named; returns the reports.
 
     `noise_scale`, `acting_pace` and `outcome_candidates` (flow) are first set on the run's final and best checkpoints, so every
-    score and export uses them. `int8` exports a scoring student with its hidden layers in int8 (`training.export`).
+    score and export uses them.
     """
     check_finished(run)
     has_best = (run / "best.json").is_file()
@@ -107,9 +105,9 @@ def ship(
             staged = staging / name
             shutil.copyfile(run / "last.safetensors", staged.with_suffix(".safetensors"))
             card = load_card(run / "last") | extra
-            card.update(name=name, run=str(record), reproduce=reproduce_commands(card, run, name, int8))
+            card.update(name=name, run=str(record), reproduce=reproduce_commands(card, run, name))
             write_text_atomic(staged.with_suffix(".json"), json.dumps(card, indent=2, allow_nan=False) + "\n")
-            export_onnx(staged, int8=int8)
+            export_onnx(staged)
             final, frames = score_heldout(staged.with_suffix(".onnx"), models_dir / f"{name}.onnx", episodes, seed, envs, reports, "final", gif=True)
             check_replacement(models_dir / name, final[envs[0]], envs[0], force)
         best = score_heldout(run / "best", run / "best", episodes, seed, envs, reports, "best")[0] if has_best else None
@@ -177,9 +175,9 @@ def write_record(run: Path, record: Path, final: dict[str, Any], best: dict[str,
         shutil.copyfile(run / "best.safetensors", record / "best.safetensors")
 
 
-def reproduce_commands(card: dict[str, Any], run: Path, name: str, int8: bool = False) -> list[str]:
+def reproduce_commands(card: dict[str, Any], run: Path, name: str) -> list[str]:
     """The training (or fine-tuning) command that made the run and the ship command that made `models/NAME`."""
-    # a fine-tuned or distilled run's card carries its own command; its config is not a training.train config
+    # a fine-tuned run's card carries its own command; its config is not a training.train config
     made = None
     if isinstance(card.get("reproduce"), dict):
         made = card["reproduce"].get("finetune") or card["reproduce"].get("distill")
@@ -193,8 +191,6 @@ def reproduce_commands(card: dict[str, Any], run: Path, name: str, int8: bool = 
     candidates, fitted = card["architecture"].get("outcome_candidates", 16), (card.get("config") or {}).get("candidates")
     if card["architecture"].get("outcome_dims") is not None and fitted is not None and candidates != fitted:
         ship_command += f" --outcome-candidates {candidates}"  # chosen at shipping, as the noise scale
-    if int8:
-        ship_command += " --int8"
     return [made or command_line(card["config"]), ship_command]
 
 
