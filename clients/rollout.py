@@ -1,6 +1,7 @@
 """Roll out a served Push-T policy over HTTP and print its score as one JSON line.
 
     python clients/rollout.py --url http://127.0.0.1:8000 --policy flow --episodes 100 --num-envs 100
+    python clients/rollout.py --url http://127.0.0.1:8000      # the service's default policy
 
 K envs step in lockstep with the project's one rollout runner (`pusht.rollout.run_episodes`); each
 decision step sends ONE batched `POST /act` for every env still running, and each returned chunk is
@@ -46,7 +47,7 @@ class ClientError(Exception):
 class HttpPolicy:
     """The runner's act function over HTTP: one `POST /act` per call, on one keep-alive connection."""
 
-    def __init__(self, url: str, policy: str, api_key: str | None = None, timeout: float = 30.0,
+    def __init__(self, url: str, policy: str | None, api_key: str | None = None, timeout: float = 30.0,
                  on_response: Callable[[int, float], None] | None = None):
         self.endpoint = act_endpoint(url)
         self.policy = policy
@@ -74,13 +75,17 @@ class HttpPolicy:
         return actions
 
     def info(self) -> dict[str, Any]:
-        """The served policy's entry of `GET /policies`: kind, horizon, git_commit, steps, ..."""
+        """The served policy's entry of `GET /policies`: kind, horizon, git_commit, steps, ...; no policy named: the default's."""
         url = self.endpoint[: -len("/act")] + "/policies"
         response = self._send("GET", url)
         try:
             info = {p["name"]: p for p in response.json()["policies"]}
         except (ValueError, TypeError, KeyError) as exc:
             raise ClientError(f"GET {url}: unexpected answer ({type(exc).__name__}: {_one_line(exc)})") from None
+        if self.policy is None:
+            self.policy = next((name for name, p in info.items() if p.get("default")), None)
+            if self.policy is None:
+                raise ClientError(f"GET {url}: no policy is marked default; name one with --policy (it has {sorted(info)})")
         if self.policy not in info:
             raise ClientError(f"GET {url}: the service has no policy {self.policy!r} (it has {sorted(info)})")
         return info[self.policy]
@@ -128,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def rollout(
     url: str,
-    policy: str = "flow",
+    policy: str | None = None,
     episodes: int = 100,
     num_envs: int = 100,
     seed: int = HELD_OUT_SEED,
@@ -142,7 +147,7 @@ def rollout(
 ) -> dict[str, Any]:
     """Play episodes seed..seed+episodes-1 against the service at `url`; return the JSON report.
 
-    `action_horizon` None: the policy's whole chunk (its horizon in `GET /policies`). With `out`, one JSON line per
+    `policy` None: the service's default policy. `action_horizon` None: the policy's whole chunk (its horizon in `GET /policies`). With `out`, one JSON line per
     episode goes there; with `gif`, the first episode (both paths printed on stderr).
     """
     for name, value in (("episodes", episodes), ("num_envs", num_envs), ("max_steps", max_steps), ("action_horizon", 1 if action_horizon is None else action_horizon)):
@@ -160,6 +165,7 @@ def rollout(
     act = HttpPolicy(url, policy, api_key=api_key, timeout=timeout, on_response=bar.on_response if bar else None)
     try:
         info = act.info()
+        policy = act.policy
         horizon = info.get("horizon")  # None from a service that does not list it: the runner takes the chunks' length
         if action_horizon is not None and horizon is not None and action_horizon > horizon:
             raise ClientError(f"--action-horizon {action_horizon} exceeds policy {policy!r}'s chunks of {horizon} actions")
@@ -227,7 +233,7 @@ def _parser() -> argparse.ArgumentParser:
         formatter_class=_HelpFormatter,
     )
     parser.add_argument("--url", required=True, help="base URL of the service, e.g. http://127.0.0.1:8000")
-    parser.add_argument("--policy", default="flow", help="policy name served by the service")
+    parser.add_argument("--policy", default=None, help="policy name served by the service (default: its default policy, GET /policies)")
     parser.add_argument("--episodes", type=int, default=100, help="number of episodes, env seeds SEED..SEED+N-1")
     parser.add_argument("--num-envs", type=int, default=100, help="envs stepped in lockstep, one request per decision for all; scores do not depend on it")
     parser.add_argument("--seed", type=int, default=HELD_OUT_SEED, help=f"first episode seed ({HELD_OUT_SEED}.. are the held-out seeds)")

@@ -1,9 +1,12 @@
-"""Print the markdown table of every recorded training run's held-out scores (records/*/).
+"""Print the markdown table of the shipped policies' held-out scores, from their cards (models/*.json).
 
-    python scripts/results_table.py [--records-dir records] [--models-dir models] [--env pusht]
+    python scripts/results_table.py [--models-dir models] [--env gym-pusht]
+    python scripts/results_table.py --stages      # each policy's recipe stages: wall time and score
 
-One row per run and checkpoint (final, best), from the cards that `python -m training.ship` wrote,
-so the numbers in models/README.md come from a command. A run shipped as models/NAME.* says so.
+One row per policy: what it computes, its network evaluations per chunk, success and mean max reward with
+their 95 % intervals on the held-out seeds, and the recipe that made it with its summed stage wall time.
+The README's results table and models/README.md's stage tables are this command's output (tests/test_readme.py
+checks them).
 """
 
 from __future__ import annotations
@@ -16,88 +19,60 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository's
 
 from acting import CardError, read_card  # noqa: E402  (the one card reader)
 
-DEFAULT_ARCH_KEYS = ("hidden_dims", "horizon", "action_dim", "state_dim")
-
 
 def main(argv: list[str] | None = None) -> int:
-    """Command-line entry point."""
+    """Command-line entry point: the table on stdout; 2 with one line on a missing or bad card."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--records-dir", default="records", help="folder of the run records that training.ship writes")
     parser.add_argument("--models-dir", default="models", help="folder of the shipped policies")
-    parser.add_argument("--env", nargs="+", default=["pusht", "gym-pusht"], help="envs whose scores to list")
+    parser.add_argument("--env", default="gym-pusht", choices=("gym-pusht", "pusht"), help="env whose held-out scores to list")
+    parser.add_argument("--stages", action="store_true", help="print each policy's recipe stages (wall time, score) instead")
     args = parser.parse_args(argv)
-    models = Path(args.models_dir)
-    records = sorted(p for p in Path(args.records_dir).glob("*") if (p / "last.json").is_file())
-    if not records:
-        print(f"error: no run records (*/last.json) in {args.records_dir}", file=sys.stderr)
+    cards = sorted(Path(args.models_dir).glob("*.json"))
+    if not cards:
+        print(f"error: no policy cards (*.json) in {args.models_dir}", file=sys.stderr)
         return 2
     try:
-        return _table(records, models, args.env)
-    except CardError as exc:
+        loaded = [read_card(path) for path in cards]
+        print(stage_tables(loaded) if args.stages else table(loaded, args.env))
+    except (CardError, KeyError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-
-
-def _table(records: list[Path], models: Path, envs: list[str]) -> int:
-    shipped = {}
-    for path in models.glob("*.json"):
-        card = read_card(path).data
-        shipped[Path(card.get("run", "")).name] = path.stem
-
-    print("| run | kind | changes from the recipe | checkpoint | steps | train time | env "
-          "| mean max reward (95% CI) | success (95% CI) | held-out seeds | shipped as |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    for record in records:
-        for label in ("final", "best"):
-            path = record / ("last.json" if label == "final" else "best.json")
-            if not path.is_file():
-                continue
-            card = read_card(path).data
-            for env, score in (card.get("heldout_evaluation") or {}).items():
-                if env not in envs:
-                    continue
-                print(
-                    f"| {record.name} | {card['kind']} | {_changes(card)} | {label} | {card['steps']:,} "
-                    f"| {card['wall_time_s'] / 60:.0f} min | {env} | {_with_ci(score, 'mean_max_reward')} "
-                    f"| {_with_ci(score, 'success_rate', percent=True)} | {score['seeds'][0]}..{score['seeds'][1]} "
-                    f"| {shipped.get(record.name, '') if label == 'final' else ''} |"
-                )
     return 0
 
 
-def _changes(card: dict) -> str:
-    """The architecture and config choices that differ from the published recipe, in a few words."""
-    arch = {k: v for k, v in card["architecture"].items() if k not in DEFAULT_ARCH_KEYS}
-    config = card.get("config", {})
-    parts = [f"{k}={v}" for k, v in arch.items() if not (k == "dropout" and v == 0.1)]
-    noise = (config.get("state_noise_start"), config.get("state_noise_end"), config.get("state_noise_schedule"))
-    if "state_noise_start" in config and noise != (0.05, 0.05, "constant"):
-        parts.append(f"state noise {noise[0]}->{noise[1]} {noise[2]}")
-    if config.get("pad_episode_end"):
-        parts.append("end-padded windows")
-    if config.get("pace_copies"):
-        parts.append(f"each window {config['pace_copies']} times at paces 1..{config['action_speed']:g}x, the pace an input")
-    elif config.get("action_speed", 1.0) != 1.0:
-        near = config.get("action_speed_near") or config["action_speed"]
-        ramp = f", rising over {config['speed_ramp']:g}" if config.get("speed_ramp") else ""
-        where = f" ({near:g}x within {config['speed_radius']:g} of the goal{ramp})" if near != config["action_speed"] else ""
-        parts.append(f"chunks at {config['action_speed']:g}x the demonstrations' pace{where}")
-    if config.get("lr", 3e-4) != 3e-4:
-        parts.append(f"lr {config['lr']:g}")
-    if config.get("seed", 0):
-        parts.append(f"seed {config['seed']}")
-    if config.get("init"):
-        parts.append(f"fine-tuned from {config['init']}")
-    if config.get("extra_data"):
-        parts.append(f"plus the episodes in {config['extra_data']}")
-    return ", ".join(parts) or "none"
+def table(cards: list, env: str) -> str:
+    """The markdown table, the default policy first."""
+    lines = ["| policy | computes | network evaluations per chunk | success (95 % CI) | mean max reward (95 % CI) "
+             "| held-out episodes | recipe | stage wall time |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for card in sorted(cards, key=lambda c: (not c.default, c.name)):
+        score = card.data["heldout_evaluation"][env]
+        low, high = score["success_rate_ci95"]
+        rlow, rhigh = score["mean_max_reward_ci95"]
+        first, last = score["seeds"]
+        name = f"**{card.path.stem}** (default)" if card.default else card.path.stem
+        recipe = card.data.get("recipe", {}).get("file", "-")
+        minutes = card.data.get("stages_wall_time_s", 0) / 60
+        lines.append(f"| {name} | {card.computes} | {card.network_evaluations()} | {100 * score['success_rate']:.1f} % "
+                     f"({100 * low:.1f}..{100 * high:.1f}) | {score['mean_max_reward']:.3f} ({rlow:.3f}..{rhigh:.3f}) "
+                     f"| {score['episodes']} ({first}..{last}, {env}) | `{recipe}` | {minutes:.0f} min |")
+    return "\n".join(lines)
 
 
-def _with_ci(score: dict, key: str, percent: bool = False) -> str:
-    low, high = score[f"{key}_ci95"]
-    if percent:
-        return f"{100 * score[key]:.0f} % ({100 * low:.0f}..{100 * high:.0f})"
-    return f"{score[key]:.3f} ({low:.3f}..{high:.3f})"
+def stage_tables(cards: list) -> str:
+    """Per policy, its recipe's stages as the recipe runner's summary shows them: wall time and score."""
+    from training.recipe import format_score  # torch-free
+
+    blocks = []
+    for card in sorted(cards, key=lambda c: (not c.default, c.name)):
+        recipe = card.data.get("recipe", {})
+        lines = [f"`{recipe.get('file', '-')}` ({card.path.stem}, commit {card.data.get('git_commit', '-')[:10]}):", "",
+                 "| stage | run | wall time | score |", "| --- | --- | --- | --- |"]
+        for stage in card.data.get("stages", []):
+            lines.append(f"| {stage['name']} | {stage['run']} | {stage['wall_time_s']:.0f} s | {format_score(stage.get('score'))} |")
+        lines.append(f"| total | | {card.data.get('stages_wall_time_s', 0):.0f} s | |")
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks)
 
 
 if __name__ == "__main__":

@@ -16,9 +16,9 @@ import httpx
 REPO = Path(__file__).resolve().parents[1]
 # PUSHT_SHIPPED_MODELS points the "shipped models" tests at another folder (e.g. a candidate export).
 SHIPPED_MODELS = Path(os.environ.get("PUSHT_SHIPPED_MODELS", REPO / "models"))
-# The outcome chooser shipped before the one-pass student (64 candidates x 10 flow steps at 4 stretches, start noise):
-# the tests of step counts, noise and chooser fine-tuning need a flow that has them.
-CHOOSER = REPO / "records" / "flow-outcome16-stretch" / "last"
+# The shipped outcome chooser (64 candidates x 10 flow steps at 4 stretches, start noise), served as `flow` beside mse by
+# `cached_chooser_models`: the tests of step counts and noise costs need a flow whose chunk costs many evaluations.
+CHOOSER = SHIPPED_MODELS / "flow-chooser"
 
 # Realistic statistics (pixels), so random weights still give actions spread over the board.
 NORMALIZATION = {
@@ -57,13 +57,10 @@ def cached_test_models(base: Path, horizon: int = 12) -> Path:
 
 
 def cached_chooser_models(base: Path) -> Path:
-    """BASE/chooser-models once per pytest session: the shipped mse beside CHOOSER as `flow` (card, weights, its ONNX export).
-
-    The record has no ONNX; exporting its 10 unrolled steps takes ~20 s, so every test shares one export."""
+    """BASE/chooser-models once per pytest session: the shipped mse beside CHOOSER as `flow` (card, weights, ONNX), and
+    without the default flag, so the service's default is by name."""
     import json
     import shutil
-
-    from training.export import export_onnx
 
     models_dir = base / "chooser-models"
     done = models_dir / ".complete"
@@ -71,10 +68,11 @@ def cached_chooser_models(base: Path) -> Path:
         models_dir.mkdir(parents=True, exist_ok=True)
         for suffix in (".json", ".onnx", ".safetensors"):
             shutil.copyfile(SHIPPED_MODELS / f"mse{suffix}", models_dir / f"mse{suffix}")
-        shutil.copyfile(CHOOSER.with_suffix(".safetensors"), models_dir / "flow.safetensors")
+        for suffix in (".onnx", ".safetensors"):
+            shutil.copyfile(CHOOSER.with_suffix(suffix), models_dir / f"flow{suffix}")
         card = json.loads(CHOOSER.with_suffix(".json").read_text())
-        (models_dir / "flow.json").write_text(json.dumps({**card, "name": "flow"}, indent=2))  # the service names it by its stem
-        export_onnx(models_dir / "flow")
+        card["onnx"]["file"] = "flow.onnx"
+        (models_dir / "flow.json").write_text(json.dumps({**card, "name": "flow", "default": False}, indent=2))  # named by its stem
         done.touch()
     return models_dir
 

@@ -144,7 +144,7 @@ def test_a_flow_whose_start_noise_is_scaled_to_zero_draws_none(tmp_path):
     from training.checkpoint import set_noise_scale
 
     for suffix in (".json", ".safetensors"):
-        shutil.copyfile(REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / f"last{suffix}", tmp_path / f"flow{suffix}")
+        shutil.copyfile(MODELS / f"flow{suffix}", tmp_path / f"flow{suffix}")
     json_path = tmp_path / "flow.json"
     json_path.write_text(json.dumps({**json.loads(json_path.read_text()), "name": "flow"}))
     assert acting.load_policy(tmp_path / "flow").uses_noise

@@ -23,7 +23,7 @@ from training.finetune_config import FinetuneConfig, parse_config
 from training.policies import build_policy
 
 REPO = Path(__file__).resolve().parent.parent
-SHIPPED = REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"  # the plain flow that fine-tuning starts from
+SHIPPED = REPO / "models" / "flow"  # the plain flow that fine-tuning starts from
 
 
 def test_chunk_env_matches_the_plain_env_and_restarts_on_the_next_seed() -> None:

@@ -21,8 +21,8 @@ from training.policies import build_policy
 from training.selection import orthogonal_maps
 
 REPO = Path(__file__).resolve().parent.parent
-SHIPPED = REPO / "records" / "flow-agentframe-padend-150k-noise0.3" / "last"  # the plain flow inside the chooser
-CHOOSER = REPO / "records" / "flow-outcome16-stretch" / "last"  # the chooser shipped before its one-pass student
+SHIPPED = REPO / "models" / "flow"  # the plain flow inside the chooser
+CHOOSER = REPO / "models" / "flow-chooser"
 
 
 def _chooser_from_shipped(candidates: int, dims=(32,), stretches=(1.0,)):

@@ -1,4 +1,4 @@
-"""The README's first-hour commands, run as written in a fresh copy of the repo (shorter runs: SHORTER)."""
+"""The README's first-hour commands, run as written in a fresh copy of the repo (shorter runs: SHORTER), and its results table."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import sys
 import time
 import urllib.request
 from pathlib import Path
@@ -16,15 +17,11 @@ import pytest
 
 REPO = Path(__file__).resolve().parent.parent
 SECTION = "## Your first hour"
-# the only edits to the README's commands: fewer steps and episodes, and a free port
+# the only edits to the README's commands: a smaller scale and fewer episodes, and a free port
 SHORTER = (
-    ("--steps 5000", "--steps 40"),
-    ("--eval-every 2500", "--eval-every 20"),
-    ("--eval-episodes 50", "--eval-episodes 2"),
-    ("--records-dir runs/records", "--records-dir runs/records --episodes 2"),
-    ("--episodes 100 --num-envs 100", "--episodes 2 --num-envs 2"),
+    ("--scale 0.05", "--scale 0.002"),
+    ("--episodes 25 --num-envs 25", "--episodes 1 --num-envs 1"),
 )
-
 
 def readme_commands(text: str) -> list[str]:
     """The commands of the bash blocks in the README's first-hour section, continuation lines joined."""
@@ -77,18 +74,15 @@ def test_first_hour_commands_work_as_written(tmp_path):
         for old, new in (*SHORTER, ("PORT=8001", f"PORT={port}"), ("127.0.0.1:8001", f"127.0.0.1:{port}")):
             command = command.replace(old, new)
         commands.append(command)
-    train, ship, serve, curl, rollout = commands
+    recipe, serve, curl, rollout = commands
     env = {k: v for k, v in os.environ.items() if not k.startswith("PUSHT_")} | {"OMP_NUM_THREADS": "1"}
 
-    done = _run(train, clone, env)
-    assert done.returncode == 0 and "done: 40 steps" in done.stderr, done.stderr[-3000:]
-    again = _run(train, clone, env)
-    assert again.returncode == 2 and again.stderr.strip().endswith("or --overwrite to replace it"), again.stderr
-    done = _run(ship, clone, env)
-    assert done.returncode == 0, done.stderr[-3000:]
-    shipped = [json.loads(line) for line in done.stdout.splitlines()]
-    assert sorted(p.name for p in (clone / "runs" / "served").iterdir()) == [
-        "first-flow.json", "first-flow.onnx", "first-flow.safetensors", "first-flow_rollout.gif"]
+    done = _run(recipe, clone, env)
+    assert done.returncode == 0 and "| imitation | train |" in done.stdout, done.stderr[-3000:]
+    again = _run(recipe, clone, env)
+    assert again.returncode == 0 and again.stdout.count("| cached |") == 2, again.stdout
+    assert sorted(p.name for p in (clone / "runs" / "served").iterdir()) == ["flow.json", "flow.onnx", "flow.safetensors", "flow_rollout.gif"]
+    card = json.loads((clone / "runs" / "served" / "flow.json").read_text())
 
     dry_run = _run(serve.replace("make serve", "make -n serve"), clone, env).stdout
     assert "pip" not in dry_run and "-m service" in dry_run, dry_run
@@ -108,13 +102,32 @@ def test_first_hour_commands_work_as_written(tmp_path):
         answer = _run(curl, clone, env)
         assert answer.returncode == 0, answer.stderr
         acted = json.loads(answer.stdout)
-        assert acted["policy"] == "first-flow" and len(acted["actions"]) == 12
+        assert acted["policy"] == "flow" and len(acted["actions"]) == 12
         scored = _run(rollout, clone, env)
         assert scored.returncode == 0, scored.stderr[-3000:]
         over_http = json.loads(scored.stdout.splitlines()[-1])
-        in_process = next(line for line in shipped if line["checkpoint"] == "final" and line["env"] == "pusht")
-        assert over_http["seeds"] == in_process["seeds"] == [200000, 200001]
+        in_process = card["heldout_evaluation"]["pusht"]
+        assert over_http["seeds"] == in_process["seeds"] == [200000, 200000]
         assert over_http["mean_max_reward"] == in_process["mean_max_reward"]
     finally:
         os.killpg(server.pid, signal.SIGTERM)
         server.communicate(timeout=30)
+
+
+@pytest.mark.parametrize("document, marker, args", [
+    ("README.md", "results", []),
+    ("models/README.md", "results", []),
+    ("models/README.md", "stages", ["--stages"]),
+])
+def test_the_documents_tables_are_the_commands_output(document, marker, args):
+    done = subprocess.run([sys.executable, "scripts/results_table.py", *args], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    text = (REPO / document).read_text()
+    start = next(line for line in text.splitlines() if line.startswith(f"<!-- {marker}: "))
+    table = text.split(start + "\n", 1)[1].split(f"\n<!-- /{marker} -->", 1)[0]
+    assert table == done.stdout.strip()
+
+
+def test_the_documents_stay_short():
+    assert (REPO / "README.md").stat().st_size <= 15_000
+    assert (REPO / "models" / "README.md").stat().st_size <= 10_000

@@ -210,13 +210,15 @@ def checkpoint_stem(stem: str | Path) -> Path:
 
 
 def git_commit(cwd: str | Path | None = None) -> str:
-    """The current commit hash (with '-dirty' if the tree has changes), or 'unknown' outside a git repo."""
+    """The current commit hash (with '-dirty' if tracked code changed), or 'unknown' outside a git repo.
+
+    models/ and records/ are left out: a recipe writes there, so the second recipe of a clean run would otherwise say dirty."""
     where = Path(cwd) if cwd is not None else Path(__file__).resolve().parent
     try:
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=where, capture_output=True, text=True, timeout=10)
         if head.returncode != 0:
             return "unknown"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=where, capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ":(top)", ":(top,exclude)models", ":(top,exclude)records"], cwd=where, capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     commit = head.stdout.strip()
