@@ -103,9 +103,9 @@ def test_shares_model_calls_with_act(server: UvicornProcess) -> None:
 
 
 def _batch_counts(url: str) -> tuple[float, float]:
-    """(model calls, requests they merged) for flow, from /metrics."""
+    """(model calls, requests they merged) for flow, from /metrics; a labelled series appears at its first call, so absent is 0."""
     values = dict(line.rsplit(" ", 1) for line in iter_lines(httpx.get(f"{url}/metrics").text))
-    return float(values['pusht_batch_requests_count{policy="flow"}']), float(values['pusht_batch_requests_sum{policy="flow"}'])
+    return tuple(float(values.get(f'pusht_batch_requests_{part}{{policy="flow"}}', 0.0)) for part in ("count", "sum"))
 
 
 async def _burst(port: int, requests: list[tuple[str, dict]]) -> list[tuple[int, bytes]]:

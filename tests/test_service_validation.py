@@ -35,7 +35,6 @@ BAD_BODIES = [
     ("states too many", {"policy": "flow", "states": [[1, 2, 3, 4, 5]] * 65}),
     ("both state and states", {"policy": "flow", "state": STATE, "states": [STATE]}),
     ("neither state nor states", {"policy": "flow"}),
-    ("no policy", {"state": STATE}),
     ("policy not a string", {"policy": 3, "state": STATE}),
     ("unknown field", {"policy": "flow", "state": STATE, "sate": 1}),
     ("huge finite value", {"policy": "flow", "state": [1e300, 2, 3, 4, 5]}),
@@ -199,12 +198,15 @@ def test_num_steps_where_the_sampler_has_none_gets_a_422_and_policies_say_the_co
     assert policies["mse"]["network_evaluations"] == 1
     from acting import read_card
 
-    arch = read_card(server.models_dir / "flow.json").architecture
-    # a chooser picks among K candidates at S stretches: K x 10 flow steps, K x S outcome-model passes
-    candidates = arch.get("outcome_candidates", 16) if arch.get("outcome_dims") else 1
-    stretches = len(arch.get("outcome_stretches", [1.0])) if arch.get("outcome_dims") else 0
-    assert policies["flow"]["num_steps"] == 10
-    assert policies["flow"]["network_evaluations"] == candidates * 10 + candidates * stretches
+    for name, info in policies.items():
+        if info["kind"] == "mse":
+            continue
+        arch = read_card(server.models_dir / f"{name}.json").architecture
+        # a chooser picks among K candidates at S stretches: K x 10 flow steps, K x S outcome-model passes
+        candidates = arch.get("outcome_candidates", 16) if arch.get("outcome_dims") else 1
+        stretches = len(arch.get("outcome_stretches", [1.0])) if arch.get("outcome_dims") else 0
+        assert info["num_steps"] == 10
+        assert info["network_evaluations"] == candidates * 10 + candidates * stretches, name
 
 
 def test_the_single_state_shortcut_accepts_exactly_what_the_request_model_accepts() -> None:
