@@ -4,7 +4,8 @@ Evaluation, collection, shipping and the service all load policies here (`load_p
 here (`read_card`); see docs/design.md. Importing this package imports no torch.
 """
 
-from acting.card import Card, CardError, read_card
-from acting.policy import Policy, load_policy, rollout_act
+from acting.loading import BACKENDS, load_policy, rollout_act
+from acting.policy import Policy
+from policies.card import Card, CardError, read_card
 
-__all__ = ["Card", "CardError", "Policy", "load_policy", "read_card", "rollout_act"]
+__all__ = ["BACKENDS", "Card", "CardError", "Policy", "load_policy", "read_card", "rollout_act"]

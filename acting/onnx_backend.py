@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from acting.card import Card, CardError, require_regular_file
 from acting.policy import Policy
+from policies.card import Card, CardError, require_regular_file
 
 __all__ = ["OnnxPolicy", "batch_invariant", "onnx_session"]
 
@@ -50,7 +50,9 @@ class OnnxPolicy(Policy):
         expected = {"state", "noise"} if self.kind == "flow" else {"state"}
         self.takes_prev_state = "prev_state" in inputs
         if inputs - {"prev_state"} != expected:
-            raise CardError(f"{path}: has inputs {sorted(inputs)}, a {self.kind} policy takes {sorted(expected)} (and optionally prev_state)")
+            raise CardError(
+                f"{path}: has inputs {sorted(inputs)}, a {self.kind} policy takes {sorted(expected)} (and optionally prev_state)"
+            )
         self._output = self._session.get_outputs()[0].name
         # InferenceSession.run checks its feeds in Python (~10 us cold after a model call, on every call); ours are always
         # the graph's own inputs as numpy arrays, so call the binding directly where this ORT version has it.
@@ -73,12 +75,15 @@ class OnnxPolicy(Policy):
         """The unrolled graph has one step count; other counts need the torch backend."""
         problem = super().check_num_steps(num_steps)
         if problem is None and num_steps != self.default_num_steps:
-            problem = (f"num_steps={num_steps} is not available on the onnx backend: {self.card.onnx_path.name} unrolls "
-                       f"{self.default_num_steps} flow steps (the torch backend or checkpoint runs other counts)")
+            problem = (
+                f"num_steps={num_steps} is not available on the onnx backend: {self.card.onnx_path.name} unrolls "
+                f"{self.default_num_steps} flow steps (the torch backend or checkpoint runs other counts)"
+            )
         return problem
 
-    def _run(self, states: np.ndarray, prev_states: np.ndarray | None, noise: np.ndarray | None,
-             num_steps: int | None) -> np.ndarray:
+    def _run(
+        self, states: np.ndarray, prev_states: np.ndarray | None, noise: np.ndarray | None, num_steps: int | None
+    ) -> np.ndarray:
         feeds = {"state": states}
         if noise is not None:
             feeds["noise"] = noise
@@ -90,8 +95,11 @@ class OnnxPolicy(Policy):
 def batch_invariant(run, states: np.ndarray, noise: np.ndarray | None, sizes: tuple[int, ...] = INVARIANCE_SIZES) -> bool:
     """Whether `run` (states [B, S], noise [B, H, A] or None -> actions) gives each row the same bits alone as inside
     consecutive batches of each of `sizes` rows."""
+
     def rows(size: int) -> np.ndarray:
-        return np.concatenate([run(states[i : i + size], None if noise is None else noise[i : i + size]) for i in range(0, len(states), size)])
+        return np.concatenate(
+            [run(states[i : i + size], None if noise is None else noise[i : i + size]) for i in range(0, len(states), size)]
+        )
 
     alone = rows(1)
     return all(np.array_equal(rows(size), alone) for size in sizes)

@@ -10,17 +10,14 @@ and torch (`acting.torch_backend`, imported only when asked for).
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from acting.card import Card, CardError
+from policies.card import Card, CardError
 from pusht.seeding import BATCH_MULTIPLE, pad_rows, row_noise
 
-__all__ = ["Policy", "load_policy", "rollout_act"]
-
-BACKENDS = ("onnx", "torch")
+__all__ = ["Policy"]
 
 
 class Policy:
@@ -46,8 +43,16 @@ class Policy:
         self._rng = np.random.default_rng()
         self._zeros: dict[int, np.ndarray] = {}
 
-    def act(self, states: np.ndarray, prev_states: np.ndarray | None = None, *, seeds: Sequence[int] | None = None,
-            noise: np.ndarray | None = None, num_steps: int | None = None, noise_scale: float = 1.0) -> np.ndarray:
+    def act(
+        self,
+        states: np.ndarray,
+        prev_states: np.ndarray | None = None,
+        *,
+        seeds: Sequence[int] | None = None,
+        noise: np.ndarray | None = None,
+        num_steps: int | None = None,
+        noise_scale: float = 1.0,
+    ) -> np.ndarray:
         """Actions float32 [B, horizon, action_dim] in env units, clipped, for states float32 [B, state_dim].
 
         Flow start noise: `noise` [B, horizon, action_dim] if given, else row i's from seeds[i] (`row_noise`), else a
@@ -78,8 +83,10 @@ class Policy:
             return f"num_steps applies to flow policies; policy {self.name!r} is {self.kind} (one network evaluation per chunk)"
         trained = self.card.sampler_steps
         if trained is not None and num_steps != trained:
-            return (f"num_steps={num_steps} is not available: policy {self.name!r} was distilled to sample in {trained} "
-                    f"step{'s' if trained != 1 else ''}, and other counts do not give its actions")
+            return (
+                f"num_steps={num_steps} is not available: policy {self.name!r} was distilled to sample in {trained} "
+                f"step{'s' if trained != 1 else ''}, and other counts do not give its actions"
+            )
         return None
 
     def network_evaluations(self, num_steps: int | None = None) -> int:
@@ -133,48 +140,7 @@ class Policy:
             return row_noise(seeds, self.horizon, self.action_dim)
         return self._rng.standard_normal(shape, dtype=np.float32)
 
-    def _run(self, states: np.ndarray, prev_states: np.ndarray | None, noise: np.ndarray | None,
-             num_steps: int | None) -> np.ndarray:
+    def _run(
+        self, states: np.ndarray, prev_states: np.ndarray | None, noise: np.ndarray | None, num_steps: int | None
+    ) -> np.ndarray:
         raise NotImplementedError
-
-
-def load_policy(model: str | Path, backend: str | None = None, threads: int = 1, num_steps: int | None = None) -> Policy:
-    """The policy of an ONNX file (card beside it) or a checkpoint stem / card; backend: onnx for .onnx files, else torch.
-
-    `num_steps` sets the flow step count of every call that gives none (ValueError where the backend cannot run it)."""
-    path = Path(model)
-    backend = backend or ("onnx" if path.suffix == ".onnx" else "torch")
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; expected one of {BACKENDS}")
-    from acting.card import read_card
-
-    card = read_card(path)  # a missing or broken card is named before any backend loads
-    if backend == "onnx":
-        from acting.onnx_backend import OnnxPolicy
-
-        policy: Policy = OnnxPolicy(card, threads)
-    else:
-        from acting.torch_backend import TorchPolicy
-
-        policy = TorchPolicy(card, threads)
-    if num_steps is not None and policy.kind == "flow":
-        problem = policy.check_num_steps(num_steps)
-        if problem is not None:
-            raise ValueError(problem)
-        policy.default_num_steps = num_steps
-    return policy
-
-
-def rollout_act(policy: Policy, noise_scale: float = 1.0, fixed_noise: int | None = None):
-    """The rollout runner's act function (states, one request seed per row) -> actions: row i's noise from seeds[i], or
-    with `fixed_noise` every row's from that one seed (a flow as a deterministic map of the state)."""
-    if not 0 <= noise_scale <= 10:
-        raise ValueError(f"noise_scale must be in [0, 10], got {noise_scale}")
-    start = None if fixed_noise is None else row_noise([fixed_noise], policy.horizon, policy.action_dim)
-
-    def act(states: np.ndarray, seeds: list[int], prev_states: np.ndarray | None = None) -> np.ndarray:
-        if start is not None:
-            return policy.act(states, prev_states, noise=np.repeat(start, len(states), axis=0), noise_scale=noise_scale)
-        return policy.act(states, prev_states, seeds=seeds, noise_scale=noise_scale)
-
-    return act

@@ -1,4 +1,4 @@
-"""The torch backend: a checkpoint NAME.safetensors rebuilt by `training.checkpoint`, any flow step count.
+"""The torch backend: a checkpoint NAME.safetensors rebuilt by `policies.checkpoint`, any flow step count.
 
 Imported only when asked for, so that serving ONNX needs no torch.
 """
@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from acting.card import Card, CardError, require_regular_file
 from acting.policy import Policy
+from policies.card import Card, CardError, require_regular_file
 from pusht.seeding import BATCH_MULTIPLE
 
 __all__ = ["TorchPolicy"]
@@ -35,7 +35,7 @@ class TorchPolicy(Policy):
         if threads:
             torch.set_num_threads(threads)
         if module is None:
-            from training.checkpoint import load_acting_policy
+            from policies.checkpoint import load_acting_policy
 
             require_regular_file(card.stem.with_suffix(".safetensors"), "weights file")
             module = load_acting_policy(card.stem)
@@ -46,14 +46,20 @@ class TorchPolicy(Policy):
     def from_module(cls, module: Any, name: str = "in-memory") -> "TorchPolicy":
         """A policy around a torch `ActingPolicy` that has no files (training's periodic evaluation)."""
         policy = module.policy
-        data = {"name": name, "kind": policy.kind, "architecture": policy.architecture, "onnx": None,
-                "sampler_steps": getattr(module, "sampler_steps", None)}
+        data = {
+            "name": name,
+            "kind": policy.kind,
+            "architecture": policy.architecture,
+            "onnx": None,
+            "sampler_steps": getattr(module, "sampler_steps", None),
+        }
         acting = cls(Card(Path(f"{name}.json"), data), module=module)
         acting.default_num_steps = module.num_steps if policy.kind == "flow" else None
         return acting
 
-    def _run(self, states: np.ndarray, prev_states: np.ndarray | None, noise: np.ndarray | None,
-             num_steps: int | None) -> np.ndarray:
+    def _run(
+        self, states: np.ndarray, prev_states: np.ndarray | None, noise: np.ndarray | None, num_steps: int | None
+    ) -> np.ndarray:
         torch = self._torch
         was_training = self.module.training
         self.module.eval()

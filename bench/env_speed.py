@@ -80,9 +80,7 @@ def parse_args(argv: list[str] | None = None) -> BenchConfig:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--episodes", type=int, default=defaults.episodes, help="episodes per repeat")
     parser.add_argument("--steps", type=int, default=defaults.steps, help="steps per episode")
-    parser.add_argument(
-        "--repeats", type=int, default=defaults.repeats, help="runs of all episodes per env, alternating order"
-    )
+    parser.add_argument("--repeats", type=int, default=defaults.repeats, help="runs of all episodes per env, alternating order")
     parser.add_argument("--seed", type=int, default=defaults.seed, help="first episode seed")
     parser.add_argument("--wrapped", action="store_true", help="make both envs with gymnasium.make (with wrappers)")
     args = parser.parse_args(argv)
@@ -94,8 +92,8 @@ def parse_args(argv: list[str] | None = None) -> BenchConfig:
 
 def _make_reference(wrapped: bool):
     try:
-        import gymnasium
         import gym_pusht  # noqa: F401  (registers gym_pusht/PushT-v0)
+        import gymnasium
     except ImportError:
         sys.exit("gym-pusht is not installed: pip install -e '.[test]' (it pins gym-pusht==0.1.8)")
     env = gymnasium.make("gym_pusht/PushT-v0", obs_type="state", render_mode="rgb_array")

@@ -26,7 +26,12 @@ from acting.onnx_backend import onnx_session  # noqa: E402
 def main(argv: list[str] | None = None) -> int:
     """Time the models and print one JSON line per model."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--models", nargs="+", required=True, help="exported flows (ONNX files, each with its card beside it) of one shape; the first is the baseline")
+    parser.add_argument(
+        "--models",
+        nargs="+",
+        required=True,
+        help="exported flows (ONNX files, each with its card beside it) of one shape; the first is the baseline",
+    )
     parser.add_argument("--rounds", type=int, default=15, help="alternating rounds")
     parser.add_argument("--calls", type=int, default=200, help="calls per model per round")
     parser.add_argument("--batch", type=int, default=1, help="rows per call")
@@ -40,8 +45,10 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(0)
     low = [50, 50, 100, 100, 0] if card.state_dim == 5 else [0] * card.state_dim
     high = [450, 450, 400, 400, 6.28] if card.state_dim == 5 else [512] * card.state_dim
-    feeds = {"state": rng.uniform(low, high, (args.batch, card.state_dim)).astype(np.float32),
-             "noise": rng.standard_normal((args.batch, card.horizon, card.action_dim)).astype(np.float32)}
+    feeds = {
+        "state": rng.uniform(low, high, (args.batch, card.state_dim)).astype(np.float32),
+        "noise": rng.standard_normal((args.batch, card.horizon, card.action_dim)).astype(np.float32),
+    }
     for session in sessions:  # warm-up
         for _ in range(50):
             session.run(["actions"], feeds)
@@ -55,8 +62,17 @@ def main(argv: list[str] | None = None) -> int:
     base = float(np.median(per_call[0]))
     for model, times in zip(args.models, per_call):
         median = float(np.median(times))
-        print(json.dumps({"model": model, "batch": args.batch, "ms_per_chunk_median": round(median * 1e3, 4),
-                          "ms_per_chunk_min_round": round(min(times) * 1e3, 4), "ratio_to_first": round(median / base, 3)}))
+        print(
+            json.dumps(
+                {
+                    "model": model,
+                    "batch": args.batch,
+                    "ms_per_chunk_median": round(median * 1e3, 4),
+                    "ms_per_chunk_min_round": round(min(times) * 1e3, 4),
+                    "ratio_to_first": round(median / base, 3),
+                }
+            )
+        )
     return 0
 
 

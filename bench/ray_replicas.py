@@ -40,7 +40,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--connections", type=int, default=32, help="concurrent connections for the throughput run")
     parser.add_argument("--duration", type=float, default=5.0, help="seconds of the throughput run")
     parser.add_argument("--warmup", type=int, default=300, help="warm-up requests before each measurement")
-    parser.add_argument("--rounds", type=int, default=1, help="alternate the three servers this many times; report each figure's median")
+    parser.add_argument(
+        "--rounds", type=int, default=1, help="alternate the three servers this many times; report each figure's median"
+    )
     parser.add_argument("--local-cpus", type=int, default=os.cpu_count(), help="CPUs of each local Ray cluster")
     args = parser.parse_args(argv)
     payloads = _payloads(args.policy, 512)
@@ -51,7 +53,10 @@ def main(argv: list[str] | None = None) -> int:
         "ray serve, 2 replicas": ["-m", "service.ray_serve", "--replicas", "2", "--local-cpus", str(args.local_cpus)],
     }
     results: dict[str, list[Figures]] = {name: [] for name in servers}
-    print(f"{args.policy}: {os.cpu_count()} cores, load average {', '.join(f'{x:.2f}' for x in os.getloadavg())} at start", flush=True)
+    print(
+        f"{args.policy}: {os.cpu_count()} cores, load average {', '.join(f'{x:.2f}' for x in os.getloadavg())} at start",
+        flush=True,
+    )
     for round_ in range(args.rounds):
         for name, cmd in servers.items():
             fig = _bench(name, cmd, env, payloads, args)
@@ -64,14 +69,18 @@ def main(argv: list[str] | None = None) -> int:
         p50 = float(np.median([f.p50_ms for f in figs]))
         conc = float(np.median([f.conc_p50_ms for f in figs]))
         errors = sum(f.errors for f in figs)
-        print(f"  {name:28s} p50 @ 1 conn {p50:6.2f} ms   {rps:8,.0f} req/s @ {args.connections} conns "
-              f"({rps / base:4.2f}x plain; p50 there {conc:6.1f} ms)   errors {errors}")
+        print(
+            f"  {name:28s} p50 @ 1 conn {p50:6.2f} ms   {rps:8,.0f} req/s @ {args.connections} conns "
+            f"({rps / base:4.2f}x plain; p50 there {conc:6.1f} ms)   errors {errors}"
+        )
     return 0
 
 
 def _line(fig: Figures) -> str:
-    return (f"{fig.name:28s} p50 {fig.p50_ms:6.2f} ms at 1 conn, {fig.throughput_rps:8,.0f} req/s "
-            f"(p50 {fig.conc_p50_ms:.1f} ms, p99 {fig.conc_p99_ms:.1f} ms) at the connections, errors {fig.errors}")
+    return (
+        f"{fig.name:28s} p50 {fig.p50_ms:6.2f} ms at 1 conn, {fig.throughput_rps:8,.0f} req/s "
+        f"(p50 {fig.conc_p50_ms:.1f} ms, p99 {fig.conc_p99_ms:.1f} ms) at the connections, errors {fig.errors}"
+    )
 
 
 def _bench(name: str, args_: list[str], env: dict[str, str], payloads: list[bytes], args: argparse.Namespace) -> Figures:

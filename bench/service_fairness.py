@@ -34,7 +34,10 @@ from bench.service_latency import _connection, _cpu_seconds, _payloads, _wait_re
 
 def _request(body: dict) -> bytes:
     data = json.dumps(body).encode()
-    return b"POST /act HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\nContent-Length: %d\r\n\r\n%s" % (len(data), data)
+    return b"POST /act HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\nContent-Length: %d\r\n\r\n%s" % (
+        len(data),
+        data,
+    )
 
 
 def _bulk_payloads(rows: int, n: int = 16) -> list[bytes]:
@@ -59,6 +62,7 @@ async def _bulk_and_probe(port: int, args: argparse.Namespace, probe: bool) -> d
     start = time.perf_counter()
     tasks = [_stream(port, bulk[i:] + bulk[:i], args.duration, bulk_lat, errors) for i in range(args.bulk_clients)]
     if probe:
+
         async def delayed_probe() -> None:
             await asyncio.sleep(0.5)  # measure once the bulk stream is going
             await _stream(port, small, args.duration - 0.5, probe_lat, errors)
@@ -69,8 +73,12 @@ async def _bulk_and_probe(port: int, args: argparse.Namespace, probe: bool) -> d
     out = {"bulk_rows_per_s": len(bulk_lat) * args.bulk_rows / elapsed, "errors": errors[0]}
     if probe:
         ms = np.asarray(probe_lat) * 1e3
-        out.update(probe_p50_ms=float(np.percentile(ms, 50)), probe_p99_ms=float(np.percentile(ms, 99)),
-                   probe_max_ms=float(ms.max()), probes=len(ms))
+        out.update(
+            probe_p50_ms=float(np.percentile(ms, 50)),
+            probe_p99_ms=float(np.percentile(ms, 99)),
+            probe_max_ms=float(ms.max()),
+            probes=len(ms),
+        )
     return out
 
 
@@ -102,7 +110,9 @@ def _bench(name: str, cwd: Path, models_dir: Path, args: argparse.Namespace) -> 
         cpu0 = _cpu_seconds(proc.pid)
         figures.update({f"alone_{k}": v for k, v in asyncio.run(_bulk_and_probe(port, args, probe=False)).items()})
         # server CPU per 1,000 bulk rows: the throughput figure least moved by what else runs
-        figures["alone_cpu_s_per_krow"] = (_cpu_seconds(proc.pid) - cpu0) / (figures["alone_bulk_rows_per_s"] * args.duration / 1000)
+        figures["alone_cpu_s_per_krow"] = (_cpu_seconds(proc.pid) - cpu0) / (
+            figures["alone_bulk_rows_per_s"] * args.duration / 1000
+        )
         figures.update(asyncio.run(_bulk_and_probe(port, args, probe=True)))
         time.sleep(1.0)
         figures["abandoned_probe_ms"] = asyncio.run(_abandoned(port, args.abandoned))
@@ -140,10 +150,19 @@ def main(argv: list[str] | None = None) -> int:
                 runs.setdefault(name, []).append(_bench(name, cwd, Path(args.models_dir), args))
                 print(f"[{name}, round {r + 1}/{args.rounds}] {runs[name][-1]}", file=sys.stderr)
     print(f"\ncpu cores: {os.cpu_count()}; load generator, servers and anything else running share them")
-    print(f"{args.bulk_clients} clients streaming {args.bulk_rows}-row flow requests for {args.duration:g} s; "
-          f"medians of {args.rounds} round(s)\n")
-    keys = ["alone_bulk_rows_per_s", "alone_cpu_s_per_krow", "bulk_rows_per_s", "probe_p50_ms", "probe_p99_ms", "probe_max_ms",
-            "abandoned_probe_ms"]
+    print(
+        f"{args.bulk_clients} clients streaming {args.bulk_rows}-row flow requests for {args.duration:g} s; "
+        f"medians of {args.rounds} round(s)\n"
+    )
+    keys = [
+        "alone_bulk_rows_per_s",
+        "alone_cpu_s_per_krow",
+        "bulk_rows_per_s",
+        "probe_p50_ms",
+        "probe_p99_ms",
+        "probe_max_ms",
+        "abandoned_probe_ms",
+    ]
     print(f"{'server':<10}" + "".join(f"{k:>22}" for k in keys))
     medians = {}
     for name, figs in runs.items():
@@ -151,10 +170,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:<10}" + "".join(f"{medians[name][k]:22.3f}" for k in keys))
     if "reference" in medians:
         ours, ref = medians["service"], medians["reference"]
-        print(f"\nserver cpu per bulk row ours/reference: {ours['alone_cpu_s_per_krow'] / ref['alone_cpu_s_per_krow']:.3f}x; "
-              f"bulk rows/s ours/reference: alone {ours['alone_bulk_rows_per_s'] / ref['alone_bulk_rows_per_s']:.3f}x, "
-              f"beside probes {ours['bulk_rows_per_s'] / ref['bulk_rows_per_s']:.3f}x (target >= 0.9); "
-              f"1-row p99 {ours['probe_p99_ms']:.1f} ms vs {ref['probe_p99_ms']:.1f} ms (target <= 30 ms)")
+        print(
+            f"\nserver cpu per bulk row ours/reference: {ours['alone_cpu_s_per_krow'] / ref['alone_cpu_s_per_krow']:.3f}x; "
+            f"bulk rows/s ours/reference: alone {ours['alone_bulk_rows_per_s'] / ref['alone_bulk_rows_per_s']:.3f}x, "
+            f"beside probes {ours['bulk_rows_per_s'] / ref['bulk_rows_per_s']:.3f}x (target >= 0.9); "
+            f"1-row p99 {ours['probe_p99_ms']:.1f} ms vs {ref['probe_p99_ms']:.1f} ms (target <= 30 ms)"
+        )
     errors = sum(f["errors"] + f["alone_errors"] for figs in runs.values() for f in figs)
     print(f"errors: {errors}")
     return 0 if errors == 0 else 1

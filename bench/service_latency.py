@@ -59,21 +59,55 @@ class Figures:
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    rounds = _run_rounds(args, parser)
+    results = [_median(figs) for figs in rounds.values()]
+    ratios = _report(args, results)
+    if args.json:
+        record = {
+            "rounds": {name: [asdict(f) for f in figs] for name, figs in rounds.items()},
+            "median": [asdict(f) for f in results],
+        }
+        Path(args.json).write_text(json.dumps({**record, **ratios, "cpu_count": os.cpu_count()}, indent=2) + "\n")
+    return 0 if all(f.errors == 0 for f in results) else 1
+
+
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--models-dir", default=str(REPO / "models"), help="folder with flow.json/flow.onnx (and the other policies)")
-    parser.add_argument("--random-models", action="store_true", help="bench random-weight policies of the default architectures built into a temp dir")
+    parser.add_argument(
+        "--models-dir", default=str(REPO / "models"), help="folder with flow.json/flow.onnx (and the other policies)"
+    )
+    parser.add_argument(
+        "--random-models",
+        action="store_true",
+        help="bench random-weight policies of the default architectures built into a temp dir",
+    )
     parser.add_argument("--policy", default="flow", help="policy to request")
     parser.add_argument("--sequential", type=int, default=2000, help="sequential requests at 1 connection (after warm-up)")
     parser.add_argument("--connections", type=int, default=32, help="concurrent connections for the throughput run")
     parser.add_argument("--duration", type=float, default=5.0, help="seconds of the throughput run")
     parser.add_argument("--warmup", type=int, default=300, help="warm-up requests before each measurement")
-    parser.add_argument("--rounds", type=int, default=1, help="alternate the two servers this many times; report each figure's median")
-    parser.add_argument("--only", choices=("baseline", "service", "reference", "floor"), default=None, help="run only one of the servers")
-    parser.add_argument("--floor", action="store_true", help="also bench bench/floor_app.py: a fixed answer, no framework or model (uvicorn's own floor)")
-    parser.add_argument("--reference-rev", default=None, help="also bench the service as of this git revision (e.g. the last release)")
+    parser.add_argument(
+        "--rounds", type=int, default=1, help="alternate the two servers this many times; report each figure's median"
+    )
+    parser.add_argument(
+        "--only", choices=("baseline", "service", "reference", "floor"), default=None, help="run only one of the servers"
+    )
+    parser.add_argument(
+        "--floor",
+        action="store_true",
+        help="also bench bench/floor_app.py: a fixed answer, no framework or model (uvicorn's own floor)",
+    )
+    parser.add_argument(
+        "--reference-rev", default=None, help="also bench the service as of this git revision (e.g. the last release)"
+    )
     parser.add_argument("--json", default=None, help="also write the figures to this JSON file")
-    args = parser.parse_args(argv)
+    return parser
 
+
+def _run_rounds(args: argparse.Namespace, parser: argparse.ArgumentParser) -> dict[str, list[Figures]]:
+    """Each server's figures, one per round."""
     with tempfile.TemporaryDirectory() as tmp:
         models_dir = Path(args.models_dir)
         if args.random_models:
@@ -90,7 +124,11 @@ def main(argv: list[str] | None = None) -> int:
         if args.floor or args.only == "floor":
             servers["floor"] = ("bench.floor_app:app", {}, REPO)
         if args.reference_rev:
-            servers["reference"] = ("service.app:app", {"PUSHT_MODELS_DIR": str(models_dir)}, checkout_rev(args.reference_rev, Path(tmp)))
+            servers["reference"] = (
+                "service.app:app",
+                {"PUSHT_MODELS_DIR": str(models_dir)},
+                checkout_rev(args.reference_rev, Path(tmp)),
+            )
         rounds: dict[str, list[Figures]] = {}
         # Alternating rounds spread slow drifts of the background load over both servers.
         for r in range(args.rounds):
@@ -100,25 +138,36 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"[{name}, round {r + 1}/{args.rounds}] starting {app} ...", file=sys.stderr)
                 rounds.setdefault(name, []).append(_bench_server(name, app, env, payloads, args, cwd))
                 print(f"[{name}, round {r + 1}/{args.rounds}] {_line(rounds[name][-1])}", file=sys.stderr)
-    results = [_median(figs) for figs in rounds.values()]
+    return rounds
 
+
+def _report(args: argparse.Namespace, results: list[Figures]) -> dict[str, float]:
+    """Print the table and the ratios; returns the ratios."""
     print(f"\ncpu cores: {os.cpu_count()}; load generator, server and anything else running share them")
-    print(f"policy {args.policy}, single-state requests with a seed, {args.connections} connections for {args.duration:.0f} s, "
-          f"median of {args.rounds} round(s); both servers started as `uvicorn APP --host 127.0.0.1 --port P`\n")
+    print(
+        f"policy {args.policy}, single-state requests with a seed, {args.connections} connections for {args.duration:.0f} s, "
+        f"median of {args.rounds} round(s); both servers started as `uvicorn APP --host 127.0.0.1 --port P`\n"
+    )
     c = args.connections
-    print(f"{'server':<10} {'p50 ms':>8} {'p99 ms':>8} {'cpu ms/req':>11} {f'req/s @{c}':>11} {f'p50 ms @{c}':>11} "
-          f"{f'p99 ms @{c}':>11} {f'cpu ms/req @{c}':>15} {'errors':>7}")
+    print(
+        f"{'server':<10} {'p50 ms':>8} {'p99 ms':>8} {'cpu ms/req':>11} {f'req/s @{c}':>11} {f'p50 ms @{c}':>11} "
+        f"{f'p99 ms @{c}':>11} {f'cpu ms/req @{c}':>15} {'errors':>7}"
+    )
     for fig in results:
-        print(f"{fig.name:<10} {fig.p50_ms:8.3f} {fig.p99_ms:8.3f} {fig.seq_cpu_ms:11.3f} {fig.throughput_rps:11.0f} "
-              f"{fig.conc_p50_ms:11.3f} {fig.conc_p99_ms:11.3f} {fig.conc_cpu_ms:15.3f} {fig.errors:7d}")
+        print(
+            f"{fig.name:<10} {fig.p50_ms:8.3f} {fig.p99_ms:8.3f} {fig.seq_cpu_ms:11.3f} {fig.throughput_rps:11.0f} "
+            f"{fig.conc_p50_ms:11.3f} {fig.conc_p99_ms:11.3f} {fig.conc_cpu_ms:15.3f} {fig.errors:7d}"
+        )
     by_name = {fig.name: fig for fig in results}
     ratios = {}
     if "reference" in by_name and "service" in by_name:
         ref, ours = by_name["reference"], by_name["service"]
         ratios["throughput_vs_reference"] = ours.throughput_rps / ref.throughput_rps
         ratios["p50_vs_reference"] = ours.p50_ms / ref.p50_ms
-        print(f"\nservice vs reference ({args.reference_rev}): throughput {ratios['throughput_vs_reference']:.3f}x, "
-              f"p50 {ratios['p50_vs_reference']:.3f}x, cpu per request @{c} {ours.conc_cpu_ms / ref.conc_cpu_ms:.3f}x")
+        print(
+            f"\nservice vs reference ({args.reference_rev}): throughput {ratios['throughput_vs_reference']:.3f}x, "
+            f"p50 {ratios['p50_vs_reference']:.3f}x, cpu per request @{c} {ours.conc_cpu_ms / ref.conc_cpu_ms:.3f}x"
+        )
     if "baseline" in by_name and "service" in by_name:
         base, ours = by_name["baseline"], by_name["service"]
         ratios = {
@@ -127,14 +176,13 @@ def main(argv: list[str] | None = None) -> int:
             "throughput_ratio": ours.throughput_rps / base.throughput_rps,
             "cpu_per_request_ratio_at_connections": ours.conc_cpu_ms / base.conc_cpu_ms,
         }
-        print(f"\np50 ours/baseline: {ratios['p50_ratio']:.2f}x (target <= 0.6)   "
-              f"p99 ours/baseline: {ratios['p99_ratio']:.2f}x   "
-              f"throughput ours/baseline: {ratios['throughput_ratio']:.2f}x (target >= 5)   "
-              f"server cpu per request @{c} ours/baseline: {ratios['cpu_per_request_ratio_at_connections']:.2f}x")
-    if args.json:
-        record = {"rounds": {name: [asdict(f) for f in figs] for name, figs in rounds.items()}, "median": [asdict(f) for f in results]}
-        Path(args.json).write_text(json.dumps({**record, **ratios, "cpu_count": os.cpu_count()}, indent=2) + "\n")
-    return 0 if all(f.errors == 0 for f in results) else 1
+        print(
+            f"\np50 ours/baseline: {ratios['p50_ratio']:.2f}x (target <= 0.6)   "
+            f"p99 ours/baseline: {ratios['p99_ratio']:.2f}x   "
+            f"throughput ours/baseline: {ratios['throughput_ratio']:.2f}x (target >= 5)   "
+            f"server cpu per request @{c} ours/baseline: {ratios['cpu_per_request_ratio_at_connections']:.2f}x"
+        )
+    return ratios
 
 
 def _median(figs: list[Figures]) -> Figures:
@@ -158,14 +206,16 @@ def _line(fig: Figures) -> str:
 def _build_random_models(models_dir: Path) -> None:
     import torch
 
-    from training.checkpoint import save_checkpoint
+    from policies.checkpoint import save_checkpoint
+    from policies.factory import build_policy
     from training.export import export_onnx
-    from training.policies import build_policy
 
     torch.manual_seed(0)
     stats = {
-        "state_mean": [256.0, 256.0, 256.0, 256.0, 3.14], "state_std": [100.0, 100.0, 80.0, 80.0, 1.8],
-        "action_mean": [256.0, 256.0], "action_std": [100.0, 100.0],
+        "state_mean": [256.0, 256.0, 256.0, 256.0, 3.14],
+        "state_std": [100.0, 100.0, 80.0, 80.0, 1.8],
+        "action_mean": [256.0, 256.0],
+        "action_std": [100.0, 100.0],
     }
     for kind in ("mse", "flow"):
         save_checkpoint(models_dir / kind, build_policy(kind).eval(), stats, git_commit="random")
@@ -179,8 +229,9 @@ def _payloads(policy: str, n: int) -> list[bytes]:
     for i in range(n):
         state = [*rng.uniform(50, 460, 4).round(3).tolist(), round(float(rng.uniform(0, 2 * np.pi)), 4)]
         body = json.dumps({"policy": policy, "state": state, "seed": i}).encode()
-        head = (f"POST /act HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
-                f"Content-Length: {len(body)}\r\n\r\n").encode()
+        head = (
+            f"POST /act HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n"
+        ).encode()
         out.append(head + body)
     return out
 
@@ -194,8 +245,9 @@ def checkout_rev(rev: str, tmp: Path) -> Path:
     return dest
 
 
-def _bench_server(name: str, app: str, env: dict[str, str], payloads: list[bytes], args: argparse.Namespace,
-                  cwd: Path = REPO) -> Figures:
+def _bench_server(
+    name: str, app: str, env: dict[str, str], payloads: list[bytes], args: argparse.Namespace, cwd: Path = REPO
+) -> Figures:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
@@ -204,7 +256,9 @@ def _bench_server(name: str, app: str, env: dict[str, str], payloads: list[bytes
     cmd = [sys.executable, "-m", "uvicorn", app, "--host", "127.0.0.1", "--port", str(port)]
     log = tempfile.TemporaryFile(mode="w+")
     # PYTHONPATH= so that a reference checkout imports its own service/ and pusht/, not the editable install's.
-    proc = subprocess.Popen(cmd, cwd=cwd, env={**os.environ, **env, "PYTHONPATH": str(cwd)}, stdout=log, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        cmd, cwd=cwd, env={**os.environ, **env, "PYTHONPATH": str(cwd)}, stdout=log, stderr=subprocess.STDOUT, text=True
+    )
     try:
         _wait_ready(port, proc, log)
         return asyncio.run(_measure(name, port, payloads, args, lambda: _cpu_seconds(proc.pid)))
@@ -252,8 +306,12 @@ async def _measure(name: str, port: int, payloads: list[bytes], args: argparse.N
     cpu0 = cpu()
     await _connection(port, payloads, 0, args.sequential, seq, errors, deadline=None)
     seq_cpu = cpu() - cpu0
-    await asyncio.gather(*(_connection(port, payloads, c * 97, args.warmup // args.connections + 1, None, errors, None)
-                           for c in range(args.connections)))
+    await asyncio.gather(
+        *(
+            _connection(port, payloads, c * 97, args.warmup // args.connections + 1, None, errors, None)
+            for c in range(args.connections)
+        )
+    )
     conc: list[float] = []
     cpu0 = cpu()
     start = time.perf_counter()
@@ -265,16 +323,28 @@ async def _measure(name: str, port: int, payloads: list[bytes], args: argparse.N
     conc_ms = np.asarray(conc) * 1e3
     return Figures(
         name=name,
-        p50_ms=float(np.percentile(seq_ms, 50)), p99_ms=float(np.percentile(seq_ms, 99)), seq_requests=len(seq),
+        p50_ms=float(np.percentile(seq_ms, 50)),
+        p99_ms=float(np.percentile(seq_ms, 99)),
+        seq_requests=len(seq),
         throughput_rps=len(conc) / elapsed,
-        conc_p50_ms=float(np.percentile(conc_ms, 50)), conc_p99_ms=float(np.percentile(conc_ms, 99)), conc_requests=len(conc),
+        conc_p50_ms=float(np.percentile(conc_ms, 50)),
+        conc_p99_ms=float(np.percentile(conc_ms, 99)),
+        conc_requests=len(conc),
         errors=errors[0],
-        seq_cpu_ms=1e3 * seq_cpu / max(len(seq), 1), conc_cpu_ms=1e3 * conc_cpu / max(len(conc), 1),
+        seq_cpu_ms=1e3 * seq_cpu / max(len(seq), 1),
+        conc_cpu_ms=1e3 * conc_cpu / max(len(conc), 1),
     )
 
 
-async def _connection(port: int, payloads: list[bytes], offset: int, count: int, latencies: list[float] | None,
-                      errors: list[int], deadline: float | None) -> None:
+async def _connection(
+    port: int,
+    payloads: list[bytes],
+    offset: int,
+    count: int,
+    latencies: list[float] | None,
+    errors: list[int],
+    deadline: float | None,
+) -> None:
     """Send `count` requests one after another on one keep-alive connection (or until `deadline`)."""
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
     clock = time.perf_counter

@@ -41,8 +41,13 @@ def main(argv: list[str] | None = None) -> int:
     port = _free_port()
     env = {**os.environ, "PUSHT_MODELS_DIR": args.models_dir}
     log = tempfile.TemporaryFile(mode="w+")
-    server = subprocess.Popen([sys.executable, "-m", "service", "--port", str(port), "--log-level", "warning"],
-                              cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    server = subprocess.Popen(
+        [sys.executable, "-m", "service", "--port", str(port), "--log-level", "warning"],
+        cwd=REPO,
+        env=env,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
     try:
         _wait_ready(port, server)
         conditions = {"no viewer": None, "viewer at 10 steps/s": 10.0, "viewer at 200 steps/s": 200.0}
@@ -68,8 +73,18 @@ def main(argv: list[str] | None = None) -> int:
                         viewer.join(5)
         for name, runs in results.items():
             figures = {f"p{q}_ms": round(float(np.median([np.percentile(r, q) for r in runs])) * 1000, 3) for q in (50, 95, 99)}
-            print(json.dumps({"condition": name, "policy": args.policy, "rounds": args.rounds, "requests": args.requests, **figures,
-                              "server_cpu_pct": round(float(np.median(cpu[name])), 1)}))
+            print(
+                json.dumps(
+                    {
+                        "condition": name,
+                        "policy": args.policy,
+                        "rounds": args.rounds,
+                        "requests": args.requests,
+                        **figures,
+                        "server_cpu_pct": round(float(np.median(cpu[name])), 1),
+                    }
+                )
+            )
     finally:
         server.terminate()
         server.wait(10)
@@ -83,7 +98,10 @@ async def _latencies(port: int, policy: str, n: int) -> np.ndarray:
     try:
         for i in range(n):
             body = json.dumps({"policy": policy, "state": [222.0, 97.0, 300.0, 300.0, 0.8], "seed": i}).encode()
-            request = b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: %d\r\n\r\n%s" % (len(body), body)
+            request = b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: %d\r\n\r\n%s" % (
+                len(body),
+                body,
+            )
             start = time.perf_counter()
             writer.write(request)
             head = await reader.readuntil(b"\r\n\r\n")

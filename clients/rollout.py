@@ -22,6 +22,7 @@ import importlib.util
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 from urllib.parse import urlsplit
@@ -32,7 +33,8 @@ import numpy as np
 if importlib.util.find_spec("pusht") is None:
     # Run as a script from a checkout that was not pip-installed: the repo root holds `pusht`.
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from pusht.gif import FPS, annotated_frame, write_gif as _write_gif
+from pusht.gif import FPS, annotated_frame
+from pusht.gif import write_gif as _write_gif
 from pusht.rollout import RolloutSummary, card_id, check_output_path, episode_seeds, run_episodes, write_episode_records
 from pusht.spec import HELD_OUT_SEED
 
@@ -47,8 +49,14 @@ class ClientError(Exception):
 class HttpPolicy:
     """The runner's act function over HTTP: one `POST /act` per call, on one keep-alive connection."""
 
-    def __init__(self, url: str, policy: str | None, api_key: str | None = None, timeout: float = 30.0,
-                 on_response: Callable[[int, float], None] | None = None):
+    def __init__(
+        self,
+        url: str,
+        policy: str | None,
+        api_key: str | None = None,
+        timeout: float = 30.0,
+        on_response: Callable[[int, float], None] | None = None,
+    ):
         self.endpoint = act_endpoint(url)
         self.policy = policy
         self.on_response = on_response
@@ -59,7 +67,11 @@ class HttpPolicy:
     def __call__(self, states: np.ndarray, seeds: list[int]) -> np.ndarray:
         """POST the batch of states with one seed per row; return actions float32 [B, horizon, 2]."""
         # float32 -> Python float -> JSON is exact, so the server sees the same float32 states.
-        payload = {"policy": self.policy, "states": np.asarray(states, dtype=np.float32).tolist(), "seeds": [int(s) for s in seeds]}
+        payload = {
+            "policy": self.policy,
+            "states": np.asarray(states, dtype=np.float32).tolist(),
+            "seeds": [int(s) for s in seeds],
+        }
         start = time.perf_counter()
         response = self._send("POST", self.endpoint, json=payload)
         self.latencies_s.append(time.perf_counter() - start)
@@ -95,7 +107,9 @@ class HttpPolicy:
         try:
             response = self.client.request(method, url, **kwargs)
         except httpx.TimeoutException as exc:
-            raise ClientError(f"{method} {url} timed out after {self.client.timeout.read} s ({_one_line(exc) or type(exc).__name__})") from None
+            raise ClientError(
+                f"{method} {url} timed out after {self.client.timeout.read} s ({_one_line(exc) or type(exc).__name__})"
+            ) from None
         except httpx.ConnectError as exc:
             raise ClientError(f"cannot connect to {url}: {_one_line(exc) or 'connection failed'}") from None
         except httpx.HTTPError as exc:
@@ -119,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     args = vars(_parser().parse_args(argv))
     args["progress"] = not args.pop("no_progress")
     try:
-        report = rollout(**args)
+        report = rollout(RolloutOptions(**args))
     # ValueError: the runner's and path checks (bad arguments, malformed actions from the server); OSError: unwritable files
     except (ClientError, ValueError, OSError) as exc:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
@@ -131,26 +145,42 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def rollout(
-    url: str,
-    policy: str | None = None,
-    episodes: int = 100,
-    num_envs: int = 100,
-    seed: int = HELD_OUT_SEED,
-    max_steps: int = 300,
-    action_horizon: int | None = None,
-    gif: str | Path | None = None,
-    api_key: str | None = None,
-    timeout: float = 30.0,
-    progress: bool = True,
-    out: str | Path | None = None,
-) -> dict[str, Any]:
-    """Play episodes seed..seed+episodes-1 against the service at `url`; return the JSON report.
+@dataclass
+class RolloutOptions:
+    """The client's options (its command line): `policy` None: the service's default policy; `action_horizon` None: the
+    policy's whole chunk (its horizon in `GET /policies`); with `out`, one JSON line per episode goes there; with `gif`,
+    the first episode."""
 
-    `policy` None: the service's default policy. `action_horizon` None: the policy's whole chunk (its horizon in `GET /policies`). With `out`, one JSON line per
-    episode goes there; with `gif`, the first episode (both paths printed on stderr).
-    """
-    for name, value in (("episodes", episodes), ("num_envs", num_envs), ("max_steps", max_steps), ("action_horizon", 1 if action_horizon is None else action_horizon)):
+    url: str
+    policy: str | None = None
+    episodes: int = 100
+    num_envs: int = 100
+    seed: int = HELD_OUT_SEED
+    max_steps: int = 300
+    action_horizon: int | None = None
+    gif: str | Path | None = None
+    api_key: str | None = None
+    timeout: float = 30.0
+    progress: bool = True
+    out: str | Path | None = None
+
+
+def rollout(options: RolloutOptions) -> dict[str, Any]:
+    """Play episodes seed..seed+episodes-1 against the service at `options.url`; return the JSON report (paths on stderr)."""
+    url, policy, episodes, num_envs, seed = options.url, options.policy, options.episodes, options.num_envs, options.seed
+    max_steps, action_horizon, timeout, gif, out = (
+        options.max_steps,
+        options.action_horizon,
+        options.timeout,
+        options.gif,
+        options.out,
+    )
+    for name, value in (
+        ("episodes", episodes),
+        ("num_envs", num_envs),
+        ("max_steps", max_steps),
+        ("action_horizon", 1 if action_horizon is None else action_horizon),
+    ):
         if value < 1:
             raise ClientError(f"--{name.replace('_', '-')} must be at least 1, got {value}")
     if not timeout > 0:
@@ -161,16 +191,23 @@ def rollout(
     gif = check_output_path("--gif", gif) if gif is not None else None
     out = check_output_path("--out", out) if out is not None else None
     seeds = episode_seeds(seed, episodes)
-    bar = _ProgressBar(len(seeds)) if progress else None
-    act = HttpPolicy(url, policy, api_key=api_key, timeout=timeout, on_response=bar.on_response if bar else None)
+    bar = _ProgressBar(len(seeds)) if options.progress else None
+    act = HttpPolicy(url, policy, api_key=options.api_key, timeout=timeout, on_response=bar.on_response if bar else None)
     try:
         info = act.info()
         policy = act.policy
         horizon = info.get("horizon")  # None from a service that does not list it: the runner takes the chunks' length
         if action_horizon is not None and horizon is not None and action_horizon > horizon:
             raise ClientError(f"--action-horizon {action_horizon} exceeds policy {policy!r}'s chunks of {horizon} actions")
-        summary = run_episodes(act, seeds, num_envs=num_envs, max_steps=max_steps, action_horizon=action_horizon or horizon,
-                               progress=bar if bar is not None else False, record_frames=annotated_frame if gif is not None else False)
+        summary = run_episodes(
+            act,
+            seeds,
+            num_envs=num_envs,
+            max_steps=max_steps,
+            action_horizon=action_horizon or horizon,
+            progress=bar if bar is not None else False,
+            record_frames=annotated_frame if gif is not None else False,
+        )
     finally:
         act.close()
         if bar is not None:
@@ -188,7 +225,10 @@ def report(summary: RolloutSummary, act: HttpPolicy, url: str, policy: str) -> d
     """The one-line JSON report: scores with their 95% bootstrap intervals, seeds, timing, request stats."""
     latencies_ms = np.asarray(act.latencies_s, dtype=np.float64) * 1000.0
     return {
-        "policy": policy, "url": url, **summary.scores(), "requests": act.requests,
+        "policy": policy,
+        "url": url,
+        **summary.scores(),
+        "requests": act.requests,
         "mean_request_latency_ms": round(float(latencies_ms.mean()), 2) if act.requests else None,
         "p95_request_latency_ms": round(float(np.percentile(latencies_ms, 95)), 2) if act.requests else None,
     }
@@ -233,15 +273,38 @@ def _parser() -> argparse.ArgumentParser:
         formatter_class=_HelpFormatter,
     )
     parser.add_argument("--url", required=True, help="base URL of the service, e.g. http://127.0.0.1:8000")
-    parser.add_argument("--policy", default=None, help="policy name served by the service (default: its default policy, GET /policies)")
+    parser.add_argument(
+        "--policy", default=None, help="policy name served by the service (default: its default policy, GET /policies)"
+    )
     parser.add_argument("--episodes", type=int, default=100, help="number of episodes, env seeds SEED..SEED+N-1")
-    parser.add_argument("--num-envs", type=int, default=100, help="envs stepped in lockstep, one request per decision for all; scores do not depend on it")
-    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED, help=f"first episode seed ({HELD_OUT_SEED}.. are the held-out seeds)")
+    parser.add_argument(
+        "--num-envs",
+        type=int,
+        default=100,
+        help="envs stepped in lockstep, one request per decision for all; scores do not depend on it",
+    )
+    parser.add_argument(
+        "--seed", type=int, default=HELD_OUT_SEED, help=f"first episode seed ({HELD_OUT_SEED}.. are the held-out seeds)"
+    )
     parser.add_argument("--max-steps", type=int, default=300, help="episode step limit")
-    parser.add_argument("--action-horizon", type=int, default=None,
-                        help="actions of each chunk executed open loop (default: the whole chunk, the policy's horizon in GET /policies)")
-    parser.add_argument("--out", default=None, metavar="FILE", help="write one JSON line per episode (seed, max_reward, success, length, policy, card) to FILE")
-    parser.add_argument("--gif", default=None, metavar="FILE", help="write the first episode as an animated GIF (real speed, step/coverage/success caption) to FILE")
+    parser.add_argument(
+        "--action-horizon",
+        type=int,
+        default=None,
+        help="actions of each chunk executed open loop (default: the whole chunk, the policy's horizon in GET /policies)",
+    )
+    parser.add_argument(
+        "--out",
+        default=None,
+        metavar="FILE",
+        help="write one JSON line per episode (seed, max_reward, success, length, policy, card) to FILE",
+    )
+    parser.add_argument(
+        "--gif",
+        default=None,
+        metavar="FILE",
+        help="write the first episode as an animated GIF (real speed, step/coverage/success caption) to FILE",
+    )
     parser.add_argument("--api-key", default=None, help="sent as the X-API-Key header when the service requires a key")
     parser.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="per-request timeout in seconds")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
@@ -286,8 +349,7 @@ def _error_detail(response: httpx.Response) -> str:
         return _one_line(response.text)[:_DETAIL_CHARS] or "(empty body)"
     if isinstance(detail, list):  # FastAPI validation errors: [{"loc": [...], "msg": ...}, ...]
         detail = "; ".join(
-            f"{'.'.join(str(p) for p in d.get('loc', []))}: {d.get('msg', d)}" if isinstance(d, dict) else str(d)
-            for d in detail
+            f"{'.'.join(str(p) for p in d.get('loc', []))}: {d.get('msg', d)}" if isinstance(d, dict) else str(d) for d in detail
         )
     elif not isinstance(detail, str):
         detail = json.dumps(detail)

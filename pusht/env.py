@@ -193,8 +193,17 @@ class PushTEnv(gym.Env):
         if self._space is None:
             raise gym.error.ResetNeeded("call reset() before physics_snapshot()")
         agent, block = self._agent, self._block
-        return (tuple(agent.position), tuple(agent.velocity), tuple(block.position), block.angle, tuple(block.velocity),
-                block.angular_velocity, self._agent_pos, self._agent_vel, self._elapsed_steps)
+        return (
+            tuple(agent.position),
+            tuple(agent.velocity),
+            tuple(block.position),
+            block.angle,
+            tuple(block.velocity),
+            block.angular_velocity,
+            self._agent_pos,
+            self._agent_vel,
+            self._elapsed_steps,
+        )
 
     def restore_physics(self, snapshot: tuple) -> None:
         """Rebuild the space at a `physics_snapshot` (also of another env instance)."""

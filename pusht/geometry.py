@@ -40,8 +40,7 @@ TEE_AREA = _LENGTH * _SCALE * _SCALE + _SCALE * (_LENGTH - 1) * _SCALE
 
 # The goal's rectangles in the goal's own frame, as axis-aligned boxes (x0, x1, y0, y1).
 _GOAL_BOXES = tuple(
-    (min(v[0] for v in rect), max(v[0] for v in rect), min(v[1] for v in rect), max(v[1] for v in rect))
-    for rect in TEE_RECTS
+    (min(v[0] for v in rect), max(v[0] for v in rect), min(v[1] for v in rect), max(v[1] for v in rect)) for rect in TEE_RECTS
 )
 _GOAL_COS = math.cos(GOAL_POSE[2])
 _GOAL_SIN = math.sin(GOAL_POSE[2])

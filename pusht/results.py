@@ -17,7 +17,14 @@ from typing import Any
 import numpy as np
 
 __all__ = [
-    "EpisodeResult", "RolloutSummary", "Trajectory", "bootstrap_ci95", "card_id", "check_output_path", "episode_records", "write_episode_records",
+    "EpisodeResult",
+    "RolloutSummary",
+    "Trajectory",
+    "bootstrap_ci95",
+    "card_id",
+    "check_output_path",
+    "episode_records",
+    "write_episode_records",
 ]
 
 _BOOTSTRAP_RESAMPLES = 10_000

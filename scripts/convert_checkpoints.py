@@ -24,8 +24,8 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
-from training.checkpoint import CheckpointError, checkpoint_stem, load_card, load_checkpoint  # noqa: E402
-from training.normalization import Normalizer  # noqa: E402
+from policies.checkpoint import CheckpointError, checkpoint_stem, load_card, load_checkpoint  # noqa: E402
+from policies.normalization import Normalizer  # noqa: E402
 
 LEGACY_KEYS = ("angle_mean", "angle_std")
 
@@ -44,7 +44,9 @@ def convert(stem: str | Path) -> bool:
     stats = Normalizer(arch.get("state_dim", 5), arch.get("action_dim", 2)).set(card["normalization"])
     for key, want in (("angle_mean", stats.state_mean[-1:]), ("angle_std", stats.state_std[-1:])):
         if not torch.equal(weights.get(key, torch.empty(0)), want):
-            raise CheckpointError(f"{path}: {key} {weights.get(key)} differs from the card's normalization ({want}): not converted")
+            raise CheckpointError(
+                f"{path}: {key} {weights.get(key)} differs from the card's normalization ({want}): not converted"
+            )
     kept = {key: value for key, value in weights.items() if key not in LEGACY_KEYS}
     tmp = path.with_name(path.name + ".tmp")
     save_file(kept, str(tmp), metadata=metadata)

@@ -54,8 +54,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sha256", type=_sha256_hex, default=None, help="expected SHA-256 of the zip (hex); checked if given")
     parser.add_argument("--force", action="store_true", help="download again even if a valid store is already at DEST")
     parser.add_argument("--timeout", type=float, default=60.0, help="seconds to wait for the server on connect and on each read")
-    parser.add_argument("--make-lowdim", action="store_true", help="then write the low-dimensional copy (scripts/make_lowdim_dataset.py)")
-    parser.add_argument("--lowdim-out", type=Path, default=DEFAULT_LOWDIM_OUT, help="output of --make-lowdim (replaced if it exists)")
+    parser.add_argument(
+        "--make-lowdim", action="store_true", help="then write the low-dimensional copy (scripts/make_lowdim_dataset.py)"
+    )
+    parser.add_argument(
+        "--lowdim-out", type=Path, default=DEFAULT_LOWDIM_OUT, help="output of --make-lowdim (replaced if it exists)"
+    )
     args = parser.parse_args(argv)
     try:
         store = fetch_dataset(args.url, args.dest, sha256=args.sha256, force=args.force, timeout=args.timeout)
@@ -156,7 +160,7 @@ def extract_store(archive: Path, out: Path, source: str | None = None) -> None:
             root = out.resolve()
             with _progress(sum(m.file_size for m in wanted), desc="extract") as advance:
                 for info in wanted:
-                    target = (out / info.filename[len(ZIP_PREFIX):]).resolve()
+                    target = (out / info.filename[len(ZIP_PREFIX) :]).resolve()
                     if root not in target.parents:
                         raise DownloadError(f"{name}: member {info.filename!r} escapes the destination")
                     target.parent.mkdir(parents=True, exist_ok=True)

@@ -56,7 +56,9 @@ def copy_lowdim(src: Path, out: Path, clevel: int = 9) -> None:
         shutil.rmtree(out)
     dest = zarr.open_group(str(out), mode="w", zarr_version=2)
     dest.attrs.update(dict(source.attrs))
-    dest.attrs["source"] = "pusht_cchi_v7_replay.zarr (Diffusion Policy, https://diffusion-policy.cs.columbia.edu/data/training/pusht.zip)"
+    dest.attrs["source"] = (
+        "pusht_cchi_v7_replay.zarr (Diffusion Policy, https://diffusion-policy.cs.columbia.edu/data/training/pusht.zip)"
+    )
     # bit shuffle groups the slowly changing float bits together, which zstd compresses far better
     compressor = Blosc(cname="zstd", clevel=clevel, shuffle=Blosc.BITSHUFFLE)
     for name in tqdm(ARRAYS, desc="copy", unit="array", file=sys.stderr):

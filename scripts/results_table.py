@@ -42,9 +42,11 @@ def main(argv: list[str] | None = None) -> int:
 
 def table(cards: list, env: str) -> str:
     """The markdown table, the default policy first."""
-    lines = ["| policy | computes | network evaluations per chunk | success (95 % CI) | mean max reward (95 % CI) "
-             "| held-out episodes | recipe | stage wall time |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "| policy | computes | network evaluations per chunk | success (95 % CI) | mean max reward (95 % CI) "
+        "| held-out episodes | recipe | stage wall time |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for card in sorted(cards, key=lambda c: (not c.default, c.name)):
         score = card.data["heldout_evaluation"][env]
         low, high = score["success_rate_ci95"]
@@ -53,9 +55,11 @@ def table(cards: list, env: str) -> str:
         name = f"**{card.path.stem}** (default)" if card.default else card.path.stem
         recipe = card.data.get("recipe", {}).get("file", "-")
         minutes = card.data.get("stages_wall_time_s", 0) / 60
-        lines.append(f"| {name} | {card.computes} | {card.network_evaluations()} | {100 * score['success_rate']:.1f} % "
-                     f"({100 * low:.1f}..{100 * high:.1f}) | {score['mean_max_reward']:.3f} ({rlow:.3f}..{rhigh:.3f}) "
-                     f"| {score['episodes']} ({first}..{last}, {env}) | `{recipe}` | {minutes:.0f} min |")
+        lines.append(
+            f"| {name} | {card.computes} | {card.network_evaluations()} | {100 * score['success_rate']:.1f} % "
+            f"({100 * low:.1f}..{100 * high:.1f}) | {score['mean_max_reward']:.3f} ({rlow:.3f}..{rhigh:.3f}) "
+            f"| {score['episodes']} ({first}..{last}, {env}) | `{recipe}` | {minutes:.0f} min |"
+        )
     return "\n".join(lines)
 
 
@@ -66,10 +70,16 @@ def stage_tables(cards: list) -> str:
     blocks = []
     for card in sorted(cards, key=lambda c: (not c.default, c.name)):
         recipe = card.data.get("recipe", {})
-        lines = [f"`{recipe.get('file', '-')}` ({card.path.stem}, commit {card.data.get('git_commit', '-')[:10]}):", "",
-                 "| stage | run | wall time | score |", "| --- | --- | --- | --- |"]
+        lines = [
+            f"`{recipe.get('file', '-')}` ({card.path.stem}, commit {card.data.get('git_commit', '-')[:10]}):",
+            "",
+            "| stage | run | wall time | score |",
+            "| --- | --- | --- | --- |",
+        ]
         for stage in card.data.get("stages", []):
-            lines.append(f"| {stage['name']} | {stage['run']} | {stage['wall_time_s']:.0f} s | {format_score(stage.get('score'))} |")
+            lines.append(
+                f"| {stage['name']} | {stage['run']} | {stage['wall_time_s']:.0f} s | {format_score(stage.get('score'))} |"
+            )
         lines.append(f"| total | | {card.data.get('stages_wall_time_s', 0):.0f} s | |")
         blocks.append("\n".join(lines))
     return "\n\n".join(blocks)

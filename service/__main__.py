@@ -35,7 +35,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)")
     parser.add_argument("--port", type=int, default=8000, help="TCP port")
-    parser.add_argument("--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"), help="uvicorn log level")
+    parser.add_argument(
+        "--log-level", default="info", choices=("critical", "error", "warning", "info", "debug"), help="uvicorn log level"
+    )
     args = parser.parse_args(argv)
     try:
         settings = load_settings()
@@ -46,8 +48,11 @@ def main(argv: list[str] | None = None) -> int:
 
     connections = fit_connections(settings.max_connections)
     if connections < settings.max_connections:
-        print(f"PUSHT_MAX_CONNECTIONS lowered from {settings.max_connections} to {connections} to fit the open-file limit "
-              f"(raise it with `ulimit -n`)", file=sys.stderr)
+        print(
+            f"PUSHT_MAX_CONNECTIONS lowered from {settings.max_connections} to {connections} to fit the open-file limit "
+            f"(raise it with `ulimit -n`)",
+            file=sys.stderr,
+        )
     protocol.ENTRY_POINT = True
     uvicorn.run(
         "service.app:app",

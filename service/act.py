@@ -36,8 +36,7 @@ from pydantic import ValidationError
 from pusht.spec import STATE_DIM
 from service.batching import Batcher, Overloaded
 from service.guard import refuse_headers
-from service.request_input import (WANTED_HEADERS, Receive, Scope, ServiceError, cap_errors, check_key, read_body,
-                                   request_headers)
+from service.request_input import WANTED_HEADERS, Receive, Scope, ServiceError, cap_errors, check_key, read_body, request_headers
 from service.schemas import MAX_SEED, act_request_model
 from service.settings import MAX_NUM_STEPS, STATE_LIMIT, Settings
 from service.state import ServiceState
@@ -63,8 +62,9 @@ class ActHandler:
         self.expected_key = settings.api_key.get_secret_value().encode() if settings.api_key else None
         self._prefixes: dict[Any, bytes] = {}  # by policy object
 
-    async def __call__(self, service: ServiceState, scope: Scope, receive: Receive,
-                       headers: dict[bytes, str] | None = None) -> tuple[int, bytes, dict[str, str] | None]:
+    async def __call__(
+        self, service: ServiceState, scope: Scope, receive: Receive, headers: dict[bytes, str] | None = None
+    ) -> tuple[int, bytes, dict[str, str] | None]:
         """Answer one request (`headers`: its WANTED_HEADERS, if already picked); every problem becomes a JSON error with a 4xx/503 status."""
         try:
             return 200, await self._act(service, scope, receive, headers), None
@@ -80,7 +80,9 @@ class ActHandler:
             raise ServiceError(503, "policies are still loading", {"Retry-After": "1"})
         media_type = headers.get(b"content-type", "").partition(";")[0].strip().lower()
         if media_type != "application/json" and not media_type.endswith("+json"):
-            raise ServiceError(415, f"the body must be JSON sent as 'Content-Type: application/json', got {media_type or 'none'!r}")
+            raise ServiceError(
+                415, f"the body must be JSON sent as 'Content-Type: application/json', got {media_type or 'none'!r}"
+            )
         body = await read_body(receive, headers.get(b"content-length"), self.max_body, self.body_timeout)
         fields = single_state_request(body)
         if fields is not None:
@@ -90,7 +92,9 @@ class ActHandler:
             try:
                 req = self.request_model.model_validate_json(body)
             except ValidationError as exc:
-                raise ServiceError(422, cap_errors(exc.errors(include_url=False, include_input=False, include_context=False))) from None
+                raise ServiceError(
+                    422, cap_errors(exc.errors(include_url=False, include_input=False, include_context=False))
+                ) from None
             name, state, seed, num_steps, rows, seeds = req.policy, req.state, req.seed, req.num_steps, req.states, req.seeds
         name = name if name is not None else service.default_policy
         batcher = service.batchers.get(name)
@@ -99,8 +103,16 @@ class ActHandler:
         policy = batcher.policy
         if policy.kind != "flow":
             if num_steps is not None:
-                raise ServiceError(422, [{"loc": ["num_steps"], "type": "value_error",
-                                          "msg": f"policy {name!r} is an {policy.kind} policy: one network pass, no sampler steps; omit num_steps"}])
+                raise ServiceError(
+                    422,
+                    [
+                        {
+                            "loc": ["num_steps"],
+                            "type": "value_error",
+                            "msg": f"policy {name!r} is an {policy.kind} policy: one network pass, no sampler steps; omit num_steps",
+                        }
+                    ],
+                )
         elif num_steps is not None:
             problem = policy.check_num_steps(num_steps)
             if problem is not None:
@@ -149,7 +161,11 @@ def single_state_request(body: bytes) -> tuple[str | None, list, int | None, int
     if type(data) is not dict or not _SINGLE_STATE_KEYS.issuperset(data):
         return None
     policy, state, seed, num_steps = data.get("policy"), data.get("state"), data.get("seed"), data.get("num_steps")
-    if (policy is not None and (type(policy) is not str or not 0 < len(policy) <= 200)) or type(state) is not list or len(state) != STATE_DIM:
+    if (
+        (policy is not None and (type(policy) is not str or not 0 < len(policy) <= 200))
+        or type(state) is not list
+        or len(state) != STATE_DIM
+    ):
         return None
     for value in state:  # a bool is an int to Python, not to the model
         if (type(value) is not float and type(value) is not int) or not -STATE_LIMIT <= value <= STATE_LIMIT:
@@ -161,7 +177,9 @@ def single_state_request(body: bytes) -> tuple[str | None, list, int | None, int
     return policy, state, seed, num_steps
 
 
-async def await_actions(future: asyncio.Future, batcher: Batcher, receive: Receive, rows: int, check_finite: bool = True) -> np.ndarray:
+async def await_actions(
+    future: asyncio.Future, batcher: Batcher, receive: Receive, rows: int, check_finite: bool = True
+) -> np.ndarray:
     """The actions of a queued request, every failure as a ServiceError; the rows are dropped if the client hangs up.
 
     `check_finite`: a 500 for non-finite actions (False: the caller checks them itself)."""

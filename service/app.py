@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from contextlib import asynccontextmanager
+from functools import partial
 from typing import AsyncIterator, Callable
 
 from fastapi import FastAPI, Request
@@ -22,13 +23,13 @@ from starlette.applications import Starlette
 
 from service import protocol
 from service.act import ActFastPath, ActHandler
-from service.request_input import ServiceError, cap_errors, json_error
 from service.backends import ModelLoadError, default_policy, load_policies
 from service.batching import Batcher
 from service.guard import HeaderLimit, QuietStartupFailure, Refusal
 from service.metrics import Metrics, MetricsMiddleware
 from service.oip import make_oip_router
 from service.openpi_ws import make_openpi_router
+from service.request_input import ServiceError, cap_errors, json_error
 from service.routes import DOCS_ASSETS, docs_assets_dir, make_router
 from service.settings import Settings, SettingsError, get_settings
 from service.state import ServiceState
@@ -49,50 +50,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     metrics = Metrics()
     problems: list[str] = []
 
-    @asynccontextmanager
-    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        service = ServiceState(settings=settings, metrics=metrics)
-        app.state.service = service
-        try:
-            service.policies = await asyncio.to_thread(load_policies, settings)
-            service.default_policy = default_policy(service.policies, settings.default_policy)
-        except ModelLoadError as exc:
-            problems.append(str(exc))  # QuietStartupFailure prints it as uvicorn's one error line
-            raise
-        for name, policy in service.policies.items():
-            service.batchers[name] = Batcher(
-                policy,
-                max_rows=settings.batch_max_rows,
-                max_cost=settings.batch_max_cost,
-                max_wait_s=settings.batch_max_wait_ms / 1000.0,
-                inline_max_cost=settings.inline_max_cost,
-                # 32 concurrent connections, each with a full request, must never be shed.
-                queue_limit=max(settings.queue_limit, NEVER_SHED_CONNECTIONS * settings.max_states * policy.network_evaluations()),
-                observe=metrics.observe_batch,
-            )
-        if not protocol.ENTRY_POINT:
-            log.warning(
-                "started without `python -m service`: idle and slow connections, connection count and shutdown "
-                "time are bounded only by the server's own flags (see the README's security model)"
-            )
-        if not settings.access_log:
-            access = logging.getLogger("uvicorn.access")
-            access.setLevel(logging.WARNING)
-            # As uvicorn's --no-access-log: a connection whose logger has no handler does not even build the line's
-            # arguments (the level alone still has it format the client address and path of every request).
-            access.handlers.clear()
-        service.ready = True
-        log.info(
-            "ready: %d policies (%s; default %s) on the %s backend from %s",
-            len(service.policies), ", ".join(sorted(service.policies)), service.default_policy, settings.backend, settings.models_dir,
-        )
-        try:
-            yield
-        finally:
-            service.ready = False
-            for batcher in service.batchers.values():
-                await asyncio.to_thread(batcher.close)
-
+    lifespan = partial(_lifespan, settings, metrics, problems)
     app = _PolicyApp(
         title="Push-T policy service",
         version="0.1.0",
@@ -130,6 +88,60 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(QuietStartupFailure, problems=problems)
     app.own_middleware = list(app.user_middleware)
     return app
+
+
+@asynccontextmanager
+async def _lifespan(settings: Settings, metrics: Metrics, problems: list[str], app: FastAPI) -> AsyncIterator[None]:
+    """Load the policies and start a batcher for each; ready until shutdown, then close the batchers."""
+    service = ServiceState(settings=settings, metrics=metrics)
+    app.state.service = service
+    try:
+        service.policies = await asyncio.to_thread(load_policies, settings)
+        service.default_policy = default_policy(service.policies, settings.default_policy)
+    except ModelLoadError as exc:
+        problems.append(str(exc))  # QuietStartupFailure prints it as uvicorn's one error line
+        raise
+    for name, policy in service.policies.items():
+        service.batchers[name] = Batcher(
+            policy,
+            max_rows=settings.batch_max_rows,
+            max_cost=settings.batch_max_cost,
+            max_wait_s=settings.batch_max_wait_ms / 1000.0,
+            inline_max_cost=settings.inline_max_cost,
+            # 32 concurrent connections, each with a full request, must never be shed.
+            queue_limit=max(settings.queue_limit, NEVER_SHED_CONNECTIONS * settings.max_states * policy.network_evaluations()),
+            observe=metrics.observe_batch,
+        )
+    _configure_logs(settings)
+    service.ready = True
+    log.info(
+        "ready: %d policies (%s; default %s) on the %s backend from %s",
+        len(service.policies),
+        ", ".join(sorted(service.policies)),
+        service.default_policy,
+        settings.backend,
+        settings.models_dir,
+    )
+    try:
+        yield
+    finally:
+        service.ready = False
+        for batcher in service.batchers.values():
+            await asyncio.to_thread(batcher.close)
+
+
+def _configure_logs(settings: Settings) -> None:
+    if not protocol.ENTRY_POINT:
+        log.warning(
+            "started without `python -m service`: idle and slow connections, connection count and shutdown "
+            "time are bounded only by the server's own flags (see the README's security model)"
+        )
+    if not settings.access_log:
+        access = logging.getLogger("uvicorn.access")
+        access.setLevel(logging.WARNING)
+        # As uvicorn's --no-access-log: a connection whose logger has no handler does not even build the line's
+        # arguments (the level alone still has it format the client address and path of every request).
+        access.handlers.clear()
 
 
 class _PolicyApp(FastAPI):

@@ -25,7 +25,7 @@ log = logging.getLogger("service.backends")
 LoadedPolicy = Policy
 """What the batcher and routes run: an `acting.Policy`."""
 
-CARD_HINT = "every *.json in the models dir must be a policy card (name, kind, onnx, ... as training.checkpoint writes it)"
+CARD_HINT = "every *.json in the models dir must be a policy card (name, kind, onnx, ... as policies.checkpoint writes it)"
 
 
 class ModelLoadError(RuntimeError):
@@ -55,8 +55,14 @@ def load_policies(settings: Settings) -> dict[str, Policy]:
     for card_path in sorted(models_dir.glob("*.json")):
         policy = load_served_policy(card_path, settings)
         policies[policy.name] = policy
-        log.info("loaded %s policy %r from %s (%s backend, chunks of %d)", policy.kind, policy.name, card_path,
-                 settings.backend, policy.horizon)
+        log.info(
+            "loaded %s policy %r from %s (%s backend, chunks of %d)",
+            policy.kind,
+            policy.name,
+            card_path,
+            settings.backend,
+            policy.horizon,
+        )
     if not policies:
         raise ModelLoadError(f"no policy cards (NAME.json with a 'kind') in {models_dir}")
     return policies
@@ -71,8 +77,10 @@ def load_served_policy(card_path: Path, settings: Settings) -> Policy:
             # Clients address a policy by name; a card whose name disagrees with its file is ambiguous.
             raise CardError(f"{card_path}: name {policy.card.name!r} does not match the file stem {card_path.stem!r}")
         if policy.state_dim != STATE_DIM:
-            raise CardError(f"{card_path}: architecture.state_dim is {policy.state_dim}; the service serves Push-T "
-                            f"states of {STATE_DIM} numbers")
+            raise CardError(
+                f"{card_path}: architecture.state_dim is {policy.state_dim}; the service serves Push-T "
+                f"states of {STATE_DIM} numbers"
+            )
         if policy.takes_prev_state:
             raise CardError(f"{card_path}: the policy takes prev_state, which no protocol of the service carries")
         policy.check_outputs()  # wrong shapes or broken weights stop startup; also warms the session up

@@ -101,7 +101,11 @@ class Batcher:
         return await self.enqueue(states, seed, num_steps, seeds)
 
     def enqueue(
-        self, states: np.ndarray, seed: int | None = None, num_steps: int | None = None, seeds: Sequence[int] | None = None,
+        self,
+        states: np.ndarray,
+        seed: int | None = None,
+        num_steps: int | None = None,
+        seeds: Sequence[int] | None = None,
         noise: np.ndarray | None = None,
     ) -> asyncio.Future:
         """Queue a request (`noise`: the caller's own flow noise [B, horizon, action_dim]); its future gets the actions; finished early, its rows drop."""
@@ -289,8 +293,9 @@ class Batcher:
             error = fut.exception()
             self._deliver(loop, batch, fut.result() if error is None else None, error)
 
-    def _deliver(self, loop: asyncio.AbstractEventLoop, batch: list[_Slice], actions: np.ndarray | None,
-                 error: BaseException | None) -> None:
+    def _deliver(
+        self, loop: asyncio.AbstractEventLoop, batch: list[_Slice], actions: np.ndarray | None, error: BaseException | None
+    ) -> None:
         """Hand a call's actions (or its error) to its requests, then schedule the next call."""
         self._busy = False
         if error is not None:

@@ -11,7 +11,15 @@ from __future__ import annotations
 import json
 from typing import Any, Awaitable, Callable
 
-__all__ = ["HeaderLimit", "QuietStartupFailure", "Refusal", "StartupProblem", "header_bytes", "refuse_headers", "refuse_large_headers"]
+__all__ = [
+    "HeaderLimit",
+    "QuietStartupFailure",
+    "Refusal",
+    "StartupProblem",
+    "header_bytes",
+    "refuse_headers",
+    "refuse_large_headers",
+]
 
 Scope = dict[str, Any]
 Receive = Callable[[], Awaitable[dict[str, Any]]]
@@ -54,9 +62,17 @@ def header_bytes(scope: Scope) -> int:
 async def refuse_headers(send: Send, size: int, max_bytes: int) -> None:
     """Answer 431 (and close) to a request whose path, query and headers are `size` bytes, over `max_bytes`."""
     body = json.dumps({"detail": f"request headers of {size} bytes exceed the limit of {max_bytes} bytes"}).encode()
-    await send({"type": "http.response.start", "status": 431, "headers": [
-        (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()), (b"connection", b"close"),
-    ]})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": 431,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                (b"connection", b"close"),
+            ],
+        }
+    )
     await send({"type": "http.response.body", "body": body})
 
 

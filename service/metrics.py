@@ -36,17 +36,27 @@ class Metrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
         self.requests = Counter(
-            "pusht_http_requests", "HTTP requests by route, method and status", ["route", "method", "status"], registry=self.registry
+            "pusht_http_requests",
+            "HTTP requests by route, method and status",
+            ["route", "method", "status"],
+            registry=self.registry,
         )
         self.latency = Histogram(
-            "pusht_http_request_duration_seconds", "time from request start to the last response byte", ["route"],
-            buckets=_LATENCY_BUCKETS, registry=self.registry,
+            "pusht_http_request_duration_seconds",
+            "time from request start to the last response byte",
+            ["route"],
+            buckets=_LATENCY_BUCKETS,
+            registry=self.registry,
         )
         self.batch_rows = Histogram(
             "pusht_batch_rows", "state rows per model call", ["policy"], buckets=_ROW_BUCKETS, registry=self.registry
         )
         self.batch_requests = Histogram(
-            "pusht_batch_requests", "requests merged into one model call", ["policy"], buckets=_ROW_BUCKETS, registry=self.registry
+            "pusht_batch_requests",
+            "requests merged into one model call",
+            ["policy"],
+            buckets=_ROW_BUCKETS,
+            registry=self.registry,
         )
         self._request_children: dict[tuple[str, str, int], tuple[Any, Any]] = {}
         self._batch_children: dict[str, tuple[Any, Any]] = {}

@@ -20,11 +20,11 @@ from fastapi import APIRouter, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, ValidationError
 
-from service.act import await_actions
-from service.request_input import ServiceError, cap_errors, check_key, read_body, request_headers
 from acting import Policy
+from service.act import await_actions
 from service.batching import Batcher, Overloaded
 from service.oip_tensors import VERSION, InferRequest, answer, input_tensors, invalid, model_metadata, split_body
+from service.request_input import ServiceError, cap_errors, check_key, read_body, request_headers
 from service.schemas import MAX_SEED
 from service.settings import Settings
 from service.state import ServiceState
@@ -34,8 +34,15 @@ __all__ = ["make_oip_router"]
 
 # What a web page may send cross-site without a CORS preflight: refused, so a page cannot drive a policy.
 SIMPLE_TYPES = ("text/plain", "application/x-www-form-urlencoded", "multipart/form-data")
-WANTED_HEADERS = (b"content-length", b"content-type", b"content-encoding", b"origin", b"x-api-key", b"authorization",
-                  b"inference-header-content-length")
+WANTED_HEADERS = (
+    b"content-length",
+    b"content-type",
+    b"content-encoding",
+    b"origin",
+    b"x-api-key",
+    b"authorization",
+    b"inference-header-content-length",
+)
 
 
 class OipErrorResponse(BaseModel):
@@ -67,7 +74,9 @@ def oip_error(status: int, detail: Any, headers: dict[str, str] | None = None) -
         message = detail
     else:
         message = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'request'}: {e['msg']}" for e in detail)
-    return Response(orjson.dumps({"error": message, "detail": detail}), status_code=status, media_type="application/json", headers=headers)
+    return Response(
+        orjson.dumps({"error": message, "detail": detail}), status_code=status, media_type="application/json", headers=headers
+    )
 
 
 DEFAULT_ALIAS = "default"
@@ -78,23 +87,70 @@ def make_oip_router(settings: Settings) -> APIRouter:
     router = APIRouter(prefix="/v2", tags=["KServe Open Inference Protocol v2"])
     infer = OipInfer(settings)
 
-    def lookup(request: Request, name: str, version: str | None) -> tuple[ServiceState, Batcher]:
-        service: ServiceState = request.app.state.service
-        if not service.ready:
-            raise ServiceError(503, "policies are still loading", {"Retry-After": "1"})
-        # `default` names the default policy (GET /policies), unless a policy has that name
-        batcher = service.batchers.get(name) or (service.batchers.get(service.default_policy) if name == DEFAULT_ALIAS else None)
-        if batcher is None:
-            raise ServiceError(404, f"unknown model {name!r}; loaded models: {sorted(service.batchers)} (or {DEFAULT_ALIAS!r})")
-        if version is not None and version != VERSION:
-            raise ServiceError(404, f"model {name!r} has version {VERSION!r} only, not {version!r}")
-        return service, batcher
+    _add_probe_routes(router)
+
+    @router.get("/models/{name}", summary="OIP model metadata", responses={k: ERRORS[k] for k in (404, 503)})
+    @router.get("/models/{name}/versions/{version}", include_in_schema=False)
+    async def metadata(request: Request, name: str, version: str | None = None) -> Response:
+        """A policy's inputs and outputs."""
+        try:
+            _, batcher = _lookup(request, name, version)
+        except ServiceError as exc:
+            return oip_error(exc.status, exc.detail, exc.headers)
+        return Response(orjson.dumps(model_metadata(name, batcher.policy)), media_type="application/json")
+
+    @router.get("/models/{name}/ready", summary="OIP model readiness", responses={k: ERRORS[k] for k in (404, 503)})
+    @router.get("/models/{name}/versions/{version}/ready", include_in_schema=False)
+    async def model_ready(request: Request, name: str, version: str | None = None) -> Response:
+        """200 when the policy is loaded, 404 for an unknown one, 503 while loading."""
+        try:
+            _lookup(request, name, version)
+        except ServiceError as exc:
+            return oip_error(exc.status, exc.detail, exc.headers)
+        return Response(orjson.dumps({"name": name, "ready": True}), media_type="application/json")
+
+    @router.post(
+        "/models/{name}/infer",
+        summary="OIP inference: actions FP32 [B, horizon, 2] for state FP32 [B, 5]",
+        responses={200: {"content": {"application/json": {}, "application/octet-stream": {}}}, **ERRORS},
+    )
+    @router.post("/models/{name}/versions/{version}/infer", include_in_schema=False)
+    async def infer_route(request: Request, name: str, version: str | None = None) -> Response:
+        """Run a policy through its batcher, with /act's key, limits and error rules."""
+        try:
+            infer.check_request(request_headers(request.scope, WANTED_HEADERS))
+            _, batcher = _lookup(request, name, version)
+            return await infer(request, batcher, name)
+        except ServiceError as exc:
+            return oip_error(exc.status, exc.detail, exc.headers)
+
+    return router
+
+
+def _lookup(request: Request, name: str, version: str | None) -> tuple[ServiceState, Batcher]:
+    """The service and the batcher of model `name` (or the default policy's, as `default`); ServiceError otherwise."""
+    service: ServiceState = request.app.state.service
+    if not service.ready:
+        raise ServiceError(503, "policies are still loading", {"Retry-After": "1"})
+    # `default` names the default policy (GET /policies), unless a policy has that name
+    batcher = service.batchers.get(name) or (service.batchers.get(service.default_policy) if name == DEFAULT_ALIAS else None)
+    if batcher is None:
+        raise ServiceError(404, f"unknown model {name!r}; loaded models: {sorted(service.batchers)} (or {DEFAULT_ALIAS!r})")
+    if version is not None and version != VERSION:
+        raise ServiceError(404, f"model {name!r} has version {VERSION!r} only, not {version!r}")
+    return service, batcher
+
+
+def _add_probe_routes(router: APIRouter) -> None:
+    """Server metadata, liveness and readiness."""
 
     @router.get("", summary="OIP server metadata")
     async def server_metadata() -> Response:
         """Name, version and the protocol extensions served (binary tensor data)."""
-        return Response(orjson.dumps({"name": "pusht-service", "version": "0.1.0", "extensions": ["binary_tensor_data"]}),
-                        media_type="application/json")
+        return Response(
+            orjson.dumps({"name": "pusht-service", "version": "0.1.0", "extensions": ["binary_tensor_data"]}),
+            media_type="application/json",
+        )
 
     @router.get("/health/live", summary="OIP liveness")
     async def live() -> Response:
@@ -108,42 +164,6 @@ def make_oip_router(settings: Settings) -> APIRouter:
         if service is None or not service.ready:
             return oip_error(503, "not ready: policies are still loading", {"Retry-After": "1"})
         return Response(b'{"ready":true}', media_type="application/json")
-
-    @router.get("/models/{name}", summary="OIP model metadata", responses={k: ERRORS[k] for k in (404, 503)})
-    @router.get("/models/{name}/versions/{version}", include_in_schema=False)
-    async def metadata(request: Request, name: str, version: str | None = None) -> Response:
-        """A policy's inputs and outputs."""
-        try:
-            _, batcher = lookup(request, name, version)
-        except ServiceError as exc:
-            return oip_error(exc.status, exc.detail, exc.headers)
-        return Response(orjson.dumps(model_metadata(name, batcher.policy)), media_type="application/json")
-
-    @router.get("/models/{name}/ready", summary="OIP model readiness", responses={k: ERRORS[k] for k in (404, 503)})
-    @router.get("/models/{name}/versions/{version}/ready", include_in_schema=False)
-    async def model_ready(request: Request, name: str, version: str | None = None) -> Response:
-        """200 when the policy is loaded, 404 for an unknown one, 503 while loading."""
-        try:
-            lookup(request, name, version)
-        except ServiceError as exc:
-            return oip_error(exc.status, exc.detail, exc.headers)
-        return Response(orjson.dumps({"name": name, "ready": True}), media_type="application/json")
-
-    @router.post(
-        "/models/{name}/infer", summary="OIP inference: actions FP32 [B, horizon, 2] for state FP32 [B, 5]",
-        responses={200: {"content": {"application/json": {}, "application/octet-stream": {}}}, **ERRORS},
-    )
-    @router.post("/models/{name}/versions/{version}/infer", include_in_schema=False)
-    async def infer_route(request: Request, name: str, version: str | None = None) -> Response:
-        """Run a policy through its batcher, with /act's key, limits and error rules."""
-        try:
-            infer.check_request(request_headers(request.scope, WANTED_HEADERS))
-            _, batcher = lookup(request, name, version)
-            return await infer(request, batcher, name)
-        except ServiceError as exc:
-            return oip_error(exc.status, exc.detail, exc.headers)
-
-    return router
 
 
 class OipInfer:
@@ -163,7 +183,9 @@ class OipInfer:
             raise ServiceError(403, "requests from web pages (with an Origin header) are not served on /v2")
         media_type = headers.get(b"content-type", "").partition(";")[0].strip().lower()
         if media_type in SIMPLE_TYPES:
-            raise ServiceError(415, f"send the body as application/json, application/octet-stream or without a type, not {media_type!r}")
+            raise ServiceError(
+                415, f"send the body as application/json, application/octet-stream or without a type, not {media_type!r}"
+            )
         if headers.get(b"content-encoding", "identity").strip().lower() != "identity":
             raise ServiceError(415, "compressed request bodies are not supported: send it uncompressed")
 
@@ -175,7 +197,9 @@ class OipInfer:
         try:
             req = InferRequest.model_validate_json(head)
         except ValidationError as exc:
-            raise ServiceError(422, cap_errors(exc.errors(include_url=False, include_input=False, include_context=False))) from None
+            raise ServiceError(
+                422, cap_errors(exc.errors(include_url=False, include_input=False, include_context=False))
+            ) from None
         policy = batcher.policy
         seed, num_steps, binary_out = self._parameters(req, policy)
         tensors = input_tensors(req, tail, policy, self.max_states)
@@ -195,7 +219,9 @@ class OipInfer:
         seed, num_steps = params.pop("seed", None), params.pop("num_steps", None)
         binary = params.pop("binary_data_output", False)
         if params:
-            raise invalid(["parameters"], f"unknown parameters {sorted(params)}; this server takes seed, num_steps, binary_data_output")
+            raise invalid(
+                ["parameters"], f"unknown parameters {sorted(params)}; this server takes seed, num_steps, binary_data_output"
+            )
         if seed is not None and (type(seed) is not int or not 0 <= seed <= MAX_SEED):
             raise invalid(["parameters", "seed"], f"seed must be an integer in 0..{MAX_SEED}")
         if type(binary) is not bool:
@@ -204,17 +230,21 @@ class OipInfer:
             if type(num_steps) is not int:
                 raise invalid(["parameters", "num_steps"], "must be an integer")
             if policy.kind != "flow":  # as on /act
-                raise invalid(["parameters", "num_steps"], f"policy {policy.name!r} is an {policy.kind} policy: one network pass, "
-                              "no sampler steps; omit num_steps")
+                raise invalid(
+                    ["parameters", "num_steps"],
+                    f"policy {policy.name!r} is an {policy.kind} policy: one network pass, no sampler steps; omit num_steps",
+                )
             problem = policy.check_num_steps(num_steps)
             if problem is not None:
                 raise invalid(["parameters", "num_steps"], problem)
         if policy.kind != "flow":
             seed = None  # mse draws no noise, as on /act
         for k, out in enumerate(req.outputs or []):
-            if out.name != "actions" or set(out.parameters) - {"binary_data"} or type(out.parameters.get("binary_data", binary)) is not bool:
+            if (
+                out.name != "actions"
+                or set(out.parameters) - {"binary_data"}
+                or type(out.parameters.get("binary_data", binary)) is not bool
+            ):
                 raise invalid(["outputs", k], "the one output is `actions`, with the one parameter binary_data (true or false)")
             binary = out.parameters.get("binary_data", binary)
         return seed, num_steps, binary
-
-

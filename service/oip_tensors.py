@@ -15,8 +15,8 @@ import orjson
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictFloat, StrictInt
 
-from service.request_input import ServiceError
 from acting import Policy
+from service.request_input import ServiceError
 from service.schemas import MAX_SEED
 from service.settings import STATE_LIMIT
 
@@ -67,8 +67,11 @@ def model_metadata(name: str, policy: Policy) -> dict[str, Any]:
     if policy.kind == "flow":
         inputs += [{"name": "noise", "datatype": "FP32", "shape": chunk}, {"name": "seeds", "datatype": "INT64", "shape": [-1]}]
     return {
-        "name": name, "versions": [VERSION], "platform": PLATFORMS.get(policy.backend, policy.backend),
-        "inputs": inputs, "outputs": [{"name": "actions", "datatype": "FP32", "shape": chunk}],
+        "name": name,
+        "versions": [VERSION],
+        "platform": PLATFORMS.get(policy.backend, policy.backend),
+        "inputs": inputs,
+        "outputs": [{"name": "actions", "datatype": "FP32", "shape": chunk}],
     }
 
 
@@ -77,8 +80,10 @@ def split_body(body: bytes, header_length: str | None) -> tuple[bytes, bytes]:
     if header_length is None:
         return body, b""
     if not header_length.isdigit() or int(header_length) > len(body):
-        raise ServiceError(400, f"Inference-Header-Content-Length {header_length!r} must be an integer up to the body's {len(body)} bytes")
-    return body[: int(header_length)], body[int(header_length):]
+        raise ServiceError(
+            400, f"Inference-Header-Content-Length {header_length!r} must be an integer up to the body's {len(body)} bytes"
+        )
+    return body[: int(header_length)], body[int(header_length) :]
 
 
 def input_tensors(req: InferRequest, tail: bytes, policy: Policy, max_states: int) -> dict[str, np.ndarray]:
@@ -100,8 +105,11 @@ def input_tensors(req: InferRequest, tail: bytes, policy: Policy, max_states: in
         shape = tensor.shape
         if not shape or shape[1:] != spec["shape"][1:] or not 1 <= shape[0] <= max_states or rows not in (None, shape[0]):
             dims = ", ".join(["B", *map(str, spec["shape"][1:])])
-            raise invalid(loc + ["shape"], f"input {tensor.name!r} must have shape [{dims}] with B in 1..{max_states}, "
-                           f"the same B for every input; got {shape}")
+            raise invalid(
+                loc + ["shape"],
+                f"input {tensor.name!r} must have shape [{dims}] with B in 1..{max_states}, "
+                f"the same B for every input; got {shape}",
+            )
         rows = shape[0]
         dtype = np.dtype({"FP32": "<f4", "INT64": "<i8", "UINT64": "<u8"}[tensor.datatype])
         count = math.prod(tensor.shape)
@@ -113,8 +121,11 @@ def input_tensors(req: InferRequest, tail: bytes, policy: Policy, max_states: in
             raise invalid(loc, "give the tensor's values either as `data` or as binary data (parameters.binary_data_size)")
         if size is not None:
             if type(size) is not int or size != count * dtype.itemsize or offset + size > len(tail):
-                raise invalid(loc + ["parameters", "binary_data_size"], f"must be {count * dtype.itemsize} bytes "
-                               f"({count} x {tensor.datatype}) and within the {len(tail) - offset} binary bytes left")
+                raise invalid(
+                    loc + ["parameters", "binary_data_size"],
+                    f"must be {count * dtype.itemsize} bytes "
+                    f"({count} x {tensor.datatype}) and within the {len(tail) - offset} binary bytes left",
+                )
             array = np.frombuffer(tail, dtype=dtype, count=count, offset=offset)
             offset += size
         else:
@@ -178,5 +189,8 @@ def answer(name: str, request_id: str | None, actions: np.ndarray, binary: bool)
         return Response(orjson.dumps(result, option=orjson.OPT_SERIALIZE_NUMPY), media_type="application/json")
     tensor["parameters"] = {"binary_data_size": actions.nbytes}
     head = orjson.dumps(result)
-    return Response(head + actions.astype("<f4").tobytes(), media_type="application/octet-stream",
-                    headers={"Inference-Header-Content-Length": str(len(head))})
+    return Response(
+        head + actions.astype("<f4").tobytes(),
+        media_type="application/octet-stream",
+        headers={"Inference-Header-Content-Length": str(len(head))},
+    )

@@ -22,8 +22,8 @@ import numpy as np
 from fastapi import APIRouter, WebSocket
 from fastapi.responses import Response
 
-from service.request_input import ServiceError, request_headers
 from service.batching import Batcher, Overloaded
+from service.request_input import ServiceError, request_headers
 from service.schemas import MAX_SEED
 from service.settings import STATE_LIMIT, Settings
 from service.state import ServiceState
@@ -114,7 +114,9 @@ def make_openpi_router(settings: Settings) -> APIRouter:
                 await websocket.send_text(json.dumps({"status": exc.status, "error": str(exc)}))
                 continue
             infer_ms = 1e3 * (time.monotonic() - start)
-            reply["server_timing"] = {"infer_ms": infer_ms} if prev_total_ms is None else {"infer_ms": infer_ms, "prev_total_ms": prev_total_ms}
+            reply["server_timing"] = (
+                {"infer_ms": infer_ms} if prev_total_ms is None else {"infer_ms": infer_ms, "prev_total_ms": prev_total_ms}
+            )
             await websocket.send_bytes(pack(reply))
             prev_total_ms = 1e3 * (time.monotonic() - start)
 
@@ -125,8 +127,12 @@ def metadata(batcher: Batcher) -> dict[str, Any]:
     """What the server sends on connect."""
     policy = batcher.policy
     return {
-        "policy": policy.name, "kind": policy.kind, "backend": policy.backend, "state_dim": policy.state_dim,
-        "horizon": policy.horizon, "action_dim": policy.action_dim,
+        "policy": policy.name,
+        "kind": policy.kind,
+        "backend": policy.backend,
+        "state_dim": policy.state_dim,
+        "horizon": policy.horizon,
+        "action_dim": policy.action_dim,
         "num_steps": policy.default_num_steps if policy.kind == "flow" else None,
         "keys": list(KEYS),
     }
@@ -139,8 +145,12 @@ def _admit(websocket: WebSocket, service: ServiceState, policy: str, expected: b
         scheme, _, token = headers.get(b"authorization", "").partition(" ")
         given = token.strip() if scheme.lower() in ("api-key", "bearer") else headers.get(b"x-api-key")
         if not given or not hmac.compare_digest(given.encode("latin-1"), expected):
-            raise ServiceError(401, "missing or wrong API key: send it as 'Authorization: Api-Key KEY' (openpi-client's api_key), "
-                               "'X-API-Key: KEY' or 'Authorization: Bearer KEY'", {"WWW-Authenticate": "Api-Key"})
+            raise ServiceError(
+                401,
+                "missing or wrong API key: send it as 'Authorization: Api-Key KEY' (openpi-client's api_key), "
+                "'X-API-Key: KEY' or 'Authorization: Bearer KEY'",
+                {"WWW-Authenticate": "Api-Key"},
+            )
     if b"origin" in headers:  # browsers always send Origin on websockets, which CORS does not protect
         raise ServiceError(403, "websockets from web pages (with an Origin header) are not served on /openpi")
     if not service.ready:
@@ -155,7 +165,9 @@ async def _deny(websocket: WebSocket, exc: ServiceError) -> None:
     """Refuse the handshake with an HTTP JSON error where the server can send one, else close it (403)."""
     if "websocket.http.response" in websocket.scope.get("extensions", {}):
         body = json.dumps({"detail": exc.detail}).encode()
-        await websocket.send_denial_response(Response(body, status_code=exc.status, media_type="application/json", headers=exc.headers))
+        await websocket.send_denial_response(
+            Response(body, status_code=exc.status, media_type="application/json", headers=exc.headers)
+        )
     else:
         await websocket.close(code=1008, reason=str(exc.detail)[:120])
 
@@ -183,8 +195,11 @@ async def _act(batcher: Batcher, message: dict[str, Any], max_bytes: int) -> dic
     except ValueError:  # ragged nested lists
         state = np.asarray(None)
     if state.shape != (policy.state_dim,) or state.dtype.kind not in "fiu":
-        raise BadMessage(422, f"'state' must be {policy.state_dim} numbers (float32[{policy.state_dim}]), "
-                         f"got shape {list(state.shape)} of {state.dtype}")
+        raise BadMessage(
+            422,
+            f"'state' must be {policy.state_dim} numbers (float32[{policy.state_dim}]), "
+            f"got shape {list(state.shape)} of {state.dtype}",
+        )
     state = state.astype(np.float32)
     if not (np.isfinite(state).all() and (np.abs(state) <= STATE_LIMIT).all()):
         raise BadMessage(422, f"'state' values must be finite and within +-{STATE_LIMIT:g}")
@@ -192,7 +207,9 @@ async def _act(batcher: Batcher, message: dict[str, Any], max_bytes: int) -> dic
     num_steps = _integer(obs, "num_steps", 1, 10**6)
     if policy.kind != "flow":
         if num_steps is not None:  # as on /act
-            raise BadMessage(422, f"policy {policy.name!r} is an {policy.kind} policy: one network pass, no sampler steps; omit num_steps")
+            raise BadMessage(
+                422, f"policy {policy.name!r} is an {policy.kind} policy: one network pass, no sampler steps; omit num_steps"
+            )
         seed = None  # mse draws no noise, as on /act
     elif num_steps is not None and (problem := policy.check_num_steps(num_steps)) is not None:
         raise BadMessage(422, problem)

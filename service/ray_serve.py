@@ -56,13 +56,7 @@ class ReplicaHeader:
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--replicas", type=int, default=1, help="replicas of the service (each loads every policy)")
-    parser.add_argument("--host", default="127.0.0.1", help="address of Ray Serve's HTTP proxy (0.0.0.0: every interface)")
-    parser.add_argument("--port", type=int, default=8000, help="TCP port of Ray Serve's HTTP proxy")
-    parser.add_argument("--replica-cpus", type=float, default=1.0, help="CPUs each replica reserves in the Ray cluster")
-    parser.add_argument("--local-cpus", type=int, default=None, help="CPUs of the local cluster (default: this machine's); ignored with RAY_ADDRESS")
-    parser.add_argument("--object-store-mb", type=int, default=100, help="object store of the local cluster (requests are small); ignored with RAY_ADDRESS")
+    parser = _parser()
     args = parser.parse_args(argv)
     if args.replicas < 1:
         parser.error("--replicas must be at least 1")
@@ -84,23 +78,25 @@ def main(argv: list[str] | None = None) -> int:
     env["PUSHT_MODELS_DIR"] = str(Path(settings.models_dir).resolve())
     address = os.environ.get("RAY_ADDRESS")
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # no usage reports leave this machine
-    if address:
-        ray.init(address=address, runtime_env={"env_vars": env}, log_to_driver=False)
-    else:
-        # address="local": a new cluster, even where `ray start` left a record of an older one.
-        ray.init(address="local", num_cpus=args.local_cpus or os.cpu_count(), object_store_memory=args.object_store_mb << 20,
-                 include_dashboard=False, runtime_env={"env_vars": env}, log_to_driver=False)
+    _init_ray(ray, args, env, address)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     try:
         serve.start(http_options={"host": args.host, "port": args.port})
-        deployment = serve.deployment(serve.ingress(builder)(), name="PushTService", num_replicas=args.replicas,
-                                      ray_actor_options={"num_cpus": args.replica_cpus, "runtime_env": {"env_vars": env}})
+        deployment = serve.deployment(
+            serve.ingress(builder)(),
+            name="PushTService",
+            num_replicas=args.replicas,
+            ray_actor_options={"num_cpus": args.replica_cpus, "runtime_env": {"env_vars": env}},
+        )
         serve.run(deployment.bind(), name=APP_NAME, route_prefix="/")
         where = f"the Ray cluster at {address}" if address else "a local Ray cluster"
-        print(f"ready: {args.replicas} replicas of the service from {env['PUSHT_MODELS_DIR']} on {where}, "
-              f"http://{args.host}:{args.port} (Ctrl-C stops)", flush=True)
+        print(
+            f"ready: {args.replicas} replicas of the service from {env['PUSHT_MODELS_DIR']} on {where}, "
+            f"http://{args.host}:{args.port} (Ctrl-C stops)",
+            flush=True,
+        )
         while not stop.wait(1.0):
             pass
     finally:
@@ -111,6 +107,44 @@ def main(argv: list[str] | None = None) -> int:
         ray.shutdown()
         print("stopped", flush=True)
     return 0
+
+
+def _init_ray(ray: Any, args: argparse.Namespace, env: dict[str, str], address: str | None) -> None:
+    """Join the cluster at `address`, or start a local one sized by the command line."""
+    if address:
+        ray.init(address=address, runtime_env={"env_vars": env}, log_to_driver=False)
+    else:
+        # address="local": a new cluster, even where `ray start` left a record of an older one.
+        ray.init(
+            address="local",
+            num_cpus=args.local_cpus or os.cpu_count(),
+            object_store_memory=args.object_store_mb << 20,
+            include_dashboard=False,
+            runtime_env={"env_vars": env},
+            log_to_driver=False,
+        )
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--replicas", type=int, default=1, help="replicas of the service (each loads every policy)")
+    parser.add_argument("--host", default="127.0.0.1", help="address of Ray Serve's HTTP proxy (0.0.0.0: every interface)")
+    parser.add_argument("--port", type=int, default=8000, help="TCP port of Ray Serve's HTTP proxy")
+    parser.add_argument("--replica-cpus", type=float, default=1.0, help="CPUs each replica reserves in the Ray cluster")
+    parser.add_argument(
+        "--local-cpus",
+        type=int,
+        default=None,
+        help="CPUs of the local cluster (default: this machine's); ignored with RAY_ADDRESS",
+    )
+    parser.add_argument(
+        "--object-store-mb",
+        type=int,
+        default=100,
+        help="object store of the local cluster (requests are small); ignored with RAY_ADDRESS",
+    )
+    return parser
 
 
 if __name__ == "__main__":

@@ -16,7 +16,16 @@ from typing import Any, Awaitable, Callable
 
 from fastapi.responses import Response
 
-__all__ = ["MAX_ERRORS", "WANTED_HEADERS", "ServiceError", "cap_errors", "check_key", "json_error", "read_body", "request_headers"]
+__all__ = [
+    "MAX_ERRORS",
+    "WANTED_HEADERS",
+    "ServiceError",
+    "cap_errors",
+    "check_key",
+    "json_error",
+    "read_body",
+    "request_headers",
+]
 
 Scope = dict[str, Any]
 Receive = Callable[[], Awaitable[dict[str, Any]]]
@@ -41,7 +50,10 @@ def json_error(status: int, detail: Any, headers: dict[str, str] | None = None) 
 
 def cap_errors(errors: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """The first MAX_ERRORS validation errors as {loc, msg, type}, then one entry counting the rest."""
-    shown = [{"loc": list(e.get("loc", ())), "msg": str(e.get("msg", ""))[:500], "type": e.get("type", "")} for e in errors[:MAX_ERRORS]]
+    shown = [
+        {"loc": list(e.get("loc", ())), "msg": str(e.get("msg", ""))[:500], "type": e.get("type", "")}
+        for e in errors[:MAX_ERRORS]
+    ]
     if len(errors) > MAX_ERRORS:
         shown.append({"loc": [], "msg": f"and {len(errors) - MAX_ERRORS} more errors", "type": "too_many_errors"})
     return shown
@@ -64,7 +76,8 @@ def check_key(headers: dict[bytes, str], expected: bytes) -> None:
         given = token.strip() if scheme.lower() == "bearer" else None
     if not given or not hmac.compare_digest(given.encode("latin-1"), expected):
         raise ServiceError(
-            401, "missing or wrong API key: send it as 'X-API-Key: KEY' or 'Authorization: Bearer KEY'",
+            401,
+            "missing or wrong API key: send it as 'X-API-Key: KEY' or 'Authorization: Bearer KEY'",
             {"WWW-Authenticate": "Bearer"},
         )
 

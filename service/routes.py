@@ -17,8 +17,8 @@ from fastapi.responses import HTMLResponse, Response
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
 from service.act import ActHandler
-from service.request_input import ServiceError, check_key, json_error, request_headers
 from service.metrics import CONTENT_TYPE_LATEST
+from service.request_input import ServiceError, check_key, json_error, request_headers
 from service.schemas import ActResponse, ErrorResponse, PoliciesResponse, PolicyInfo
 from service.settings import Settings
 from service.state import ServiceState
@@ -30,6 +30,26 @@ DOCS_ASSETS = "/docs-assets"
 
 _api_key_header = APIKeyHeader(name="X-API-Key", auto_error=False, description="the PUSHT_API_KEY, when the service sets one")
 _bearer = HTTPBearer(auto_error=False, description="the PUSHT_API_KEY as a bearer token, when the service sets one")
+
+
+ERRORS: dict[int | str, dict[str, Any]] = {
+    code: {"model": ErrorResponse, "description": text}
+    for code, text in (
+        (400, "malformed HTTP framing, e.g. an invalid Content-Length"),
+        (401, "missing or wrong API key (only when PUSHT_API_KEY is set)"),
+        (404, "unknown policy; the message lists the loaded ones"),
+        (408, "the body took longer than PUSHT_BODY_TIMEOUT_S to arrive"),
+        (413, "request body larger than PUSHT_MAX_BODY_BYTES"),
+        (415, "the body is not sent as Content-Type: application/json"),
+        (
+            422,
+            "invalid body: broken JSON, wrong shapes or types, non-finite or out-of-range values, "
+            "seeds not one per state (at most 20 errors listed, then how many more)",
+        ),
+        (431, "request line and headers larger than PUSHT_MAX_HEADER_BYTES"),
+        (503, "not ready yet, or the policy's queue is full (retry later)"),
+    )
+}
 
 
 def make_router(settings: Settings, handler: "ActHandler | None" = None) -> APIRouter:
@@ -47,27 +67,12 @@ def make_router(settings: Settings, handler: "ActHandler | None" = None) -> APIR
         if expected_key is not None:
             check_key(request_headers(request.scope, (b"x-api-key", b"authorization")), expected_key)
 
-    errors: dict[int | str, dict[str, Any]] = {
-        code: {"model": ErrorResponse, "description": text}
-        for code, text in (
-            (400, "malformed HTTP framing, e.g. an invalid Content-Length"),
-            (401, "missing or wrong API key (only when PUSHT_API_KEY is set)"),
-            (404, "unknown policy; the message lists the loaded ones"),
-            (408, "the body took longer than PUSHT_BODY_TIMEOUT_S to arrive"),
-            (413, "request body larger than PUSHT_MAX_BODY_BYTES"),
-            (415, "the body is not sent as Content-Type: application/json"),
-            (422, "invalid body: broken JSON, wrong shapes or types, non-finite or out-of-range values, "
-                  "seeds not one per state (at most 20 errors listed, then how many more)"),
-            (431, "request line and headers larger than PUSHT_MAX_HEADER_BYTES"),
-            (503, "not ready yet, or the policy's queue is full (retry later)"),
-        )
-    }
     body_schema = handler.request_model.model_json_schema(ref_template="#/components/schemas/{model}")
 
     @router.post(
         "/act",
         response_model=ActResponse,
-        responses=errors,
+        responses=ERRORS,
         summary="Action chunks for one state or a batch of states",
         openapi_extra={
             "requestBody": {"required": True, "content": {"application/json": {"schema": body_schema}}},
@@ -80,40 +85,28 @@ def make_router(settings: Settings, handler: "ActHandler | None" = None) -> APIR
         status, body, headers = await handler(request.app.state.service, request.scope, request.receive)
         return Response(body, status_code=status, media_type="application/json", headers=headers)
 
-    @router.get("/policies", response_model=PoliciesResponse, responses={k: errors[k] for k in (401, 503)})
+    @router.get("/policies", response_model=PoliciesResponse, responses={k: ERRORS[k] for k in (401, 503)})
     async def policies(request: Request, _: None = Security(require_api_key)) -> PoliciesResponse:
         """The loaded policies with their chunk shapes, parameter counts and evaluation results (from the cards)."""
         service: ServiceState = request.app.state.service
         if not service.ready:
             raise ServiceError(503, "policies are still loading", {"Retry-After": "1"})
-        infos = []
-        for name, policy in sorted(service.policies.items()):
-            card = policy.card.data
-            infos.append(
-                PolicyInfo(
-                    name=name,
-                    kind=policy.card.computes,
-                    stochastic=policy.kind == "flow" and policy.uses_noise,
-                    default=name == service.default_policy,
-                    horizon=policy.horizon,
-                    action_dim=policy.action_dim,
-                    num_parameters=card.get("num_parameters"),
-                    num_steps=policy.default_num_steps if policy.kind == "flow" else None,
-                    network_evaluations=policy.network_evaluations(),
-                    steps=card.get("steps"),
-                    evaluation=card.get("evaluation"),
-                    heldout_evaluation=card.get("heldout_evaluation"),
-                    git_commit=card.get("git_commit"),
-                )
-            )
+        infos = [_policy_info(name, policy, service) for name, policy in sorted(service.policies.items())]
         return PoliciesResponse(backend=service.settings.backend, policies=infos)
+
+    _add_probe_routes(router)
+    return router
+
+
+def _add_probe_routes(router: APIRouter) -> None:
+    """Liveness, readiness, metrics and the offline docs page: the routes that need no API key."""
 
     @router.get("/healthz", summary="Liveness: the process answers")
     async def healthz() -> dict[str, str]:
         """Always 200 while the server runs."""
         return {"status": "alive"}
 
-    @router.get("/readyz", summary="Readiness: every policy is loaded", responses={503: errors[503]})
+    @router.get("/readyz", summary="Readiness: every policy is loaded", responses={503: ERRORS[503]})
     async def readyz(request: Request) -> Response:
         """200 once every policy is loaded, 503 before (and while shutting down)."""
         service: ServiceState | None = getattr(request.app.state, "service", None)
@@ -131,12 +124,32 @@ def make_router(settings: Settings, handler: "ActHandler | None" = None) -> APIR
     async def docs() -> HTMLResponse:
         """Swagger UI, its assets served by this app (no CDN)."""
         return get_swagger_ui_html(
-            openapi_url="/openapi.json", title="Push-T policy service - docs",
-            swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js", swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
+            openapi_url="/openapi.json",
+            title="Push-T policy service - docs",
+            swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
             swagger_favicon_url=f"{DOCS_ASSETS}/favicon.png",
         )
 
-    return router
+
+def _policy_info(name: str, policy: Any, service: ServiceState) -> PolicyInfo:
+    """What `/policies` says of one loaded policy, from its card and backend."""
+    card = policy.card.data
+    return PolicyInfo(
+        name=name,
+        kind=policy.card.computes,
+        stochastic=policy.kind == "flow" and policy.uses_noise,
+        default=name == service.default_policy,
+        horizon=policy.horizon,
+        action_dim=policy.action_dim,
+        num_parameters=card.get("num_parameters"),
+        num_steps=policy.default_num_steps if policy.kind == "flow" else None,
+        network_evaluations=policy.network_evaluations(),
+        steps=card.get("steps"),
+        evaluation=card.get("evaluation"),
+        heldout_evaluation=card.get("heldout_evaluation"),
+        git_commit=card.get("git_commit"),
+    )
 
 
 def docs_assets_dir() -> Path:

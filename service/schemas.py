@@ -48,24 +48,38 @@ class ActRequestBase(BaseModel):
             "examples": [
                 {"policy": "flow", "state": [222.0, 97.0, 222.0, 222.0, 0.8], "seed": 0},
                 {"policy": "mse", "states": [[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1]]},
-                {"policy": "flow", "states": [[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1]], "seeds": [7, 8]},
+                {
+                    "policy": "flow",
+                    "states": [[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1]],
+                    "seeds": [7, 8],
+                },
             ]
         },
     )
 
-    policy: str | None = Field(None, min_length=1, max_length=200, description="name of a loaded policy (see GET /policies); omitted: the default policy")
-    state: State | None = Field(None, description="one state; the answer is one chunk [horizon, action_dim] (the policy's, see GET /policies)")
+    policy: str | None = Field(
+        None, min_length=1, max_length=200, description="name of a loaded policy (see GET /policies); omitted: the default policy"
+    )
+    state: State | None = Field(
+        None, description="one state; the answer is one chunk [horizon, action_dim] (the policy's, see GET /policies)"
+    )
     seed: StrictInt | None = Field(
-        None, ge=0, le=MAX_SEED,
+        None,
+        ge=0,
+        le=MAX_SEED,
         description=(
             "noise seed for the whole request, for a stochastic policy (GET /policies): the same seed and states give the "
             "same actions; omitted (and no `seeds`): fresh noise. A policy that is not stochastic ignores it"
         ),
     )
     num_steps: StrictInt | None = Field(
-        None, ge=1, le=MAX_NUM_STEPS,
-        description=("flow Euler steps (default: the exported count; the onnx backend runs only that count, a distilled flow only "
-                     "its own); a 422 for mse, which has none"),
+        None,
+        ge=1,
+        le=MAX_NUM_STEPS,
+        description=(
+            "flow Euler steps (default: the exported count; the onnx backend runs only that count, a distilled flow only "
+            "its own); a 422 for mse, which has none"
+        ),
     )
 
     @model_validator(mode="after")
@@ -92,12 +106,17 @@ def act_request_model(max_states: int) -> type[ActRequestBase]:
     """The `POST /act` body model with `states` limited to `max_states` entries."""
     states_type = Annotated[
         list[State],
-        Field(min_length=1, max_length=max_states, description=f"a batch of 1..{max_states} states; the answer is [B, horizon, action_dim]"),
+        Field(
+            min_length=1,
+            max_length=max_states,
+            description=f"a batch of 1..{max_states} states; the answer is [B, horizon, action_dim]",
+        ),
     ]
     seeds_type = Annotated[
         list[Seed],
         Field(
-            min_length=1, max_length=max_states,
+            min_length=1,
+            max_length=max_states,
             description=(
                 "one noise seed per state of `states`: row i's actions equal those of a single request with "
                 "`state` = states[i] and `seed` = seeds[i], whatever else is in the batch (ignored by a policy that is not stochastic)"
@@ -128,15 +147,21 @@ class PolicyInfo(BaseModel):
     """One loaded policy, from its card."""
 
     name: str
-    kind: str = Field(description="what it computes: mse; flow (a flow-matching sampler); flow-chooser (a flow's candidate chunks, "
-                                  "the one a learned outcome model prefers plays)")
-    stochastic: bool = Field(description="whether its actions depend on the request's seed (its noise); false: a seed changes nothing")
+    kind: str = Field(
+        description="what it computes: mse; flow (a flow-matching sampler); flow-chooser (a flow's candidate chunks, "
+        "the one a learned outcome model prefers plays)"
+    )
+    stochastic: bool = Field(
+        description="whether its actions depend on the request's seed (its noise); false: a seed changes nothing"
+    )
     default: bool = Field(description="whether requests without a policy name get it (exactly one policy is the default)")
     num_parameters: int | None = None
     horizon: int = Field(description="actions per chunk: every answer of this policy is [horizon, action_dim] per state")
     action_dim: int = Field(description="numbers per action (the agent's target x, y)")
     num_steps: int | None = Field(None, description="flow Euler steps of the exported graph")
-    network_evaluations: int = Field(description="network passes per chunk at the default settings: flow's Euler steps (times its candidates, plus their outcome-model passes, for a flow with an outcome chooser), mse's 1")
+    network_evaluations: int = Field(
+        description="network passes per chunk at the default settings: flow's Euler steps (times its candidates, plus their outcome-model passes, for a flow with an outcome chooser), mse's 1"
+    )
     steps: int | None = Field(None, description="training steps")
     evaluation: Any = Field(None, description="the card's evaluation results during training, with their seeds")
     heldout_evaluation: Any = Field(None, description="the card's scores on held-out episode seeds, when shipped")

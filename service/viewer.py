@@ -88,8 +88,10 @@ def make_viewer_router(settings: Settings) -> APIRouter:
 
     @router.get("/viewer", include_in_schema=False)
     async def viewer_page(
-        policy: str | None = Query(None, max_length=200), seed: int = Query(0, ge=0, le=MAX_SEED),
-        autoplay: int = Query(0, ge=0, le=1), fps: float = Query(10.0, ge=1.0, le=MAX_FPS),
+        policy: str | None = Query(None, max_length=200),
+        seed: int = Query(0, ge=0, le=MAX_SEED),
+        autoplay: int = Query(0, ge=0, le=1),
+        fps: float = Query(10.0, ge=1.0, le=MAX_FPS),
         mode: Literal["policy", "teleop"] = Query("policy"),
     ) -> FileResponse:
         """The page; its query (policy, seed, autoplay, fps, mode) is read by its script, checked here."""
@@ -104,8 +106,12 @@ def make_viewer_router(settings: Settings) -> APIRouter:
             if settings.viewer_max_sessions == 0:
                 raise _Refused(503, "the viewer is off on this service (PUSHT_VIEWER_MAX_SESSIONS=0)", close=True)
             if sessions["live"] >= settings.viewer_max_sessions:
-                raise _Refused(503, f"{sessions['live']} viewer sessions are open (PUSHT_VIEWER_MAX_SESSIONS="
-                               f"{settings.viewer_max_sessions}); close one or retry later", close=True)
+                raise _Refused(
+                    503,
+                    f"{sessions['live']} viewer sessions are open (PUSHT_VIEWER_MAX_SESSIONS="
+                    f"{settings.viewer_max_sessions}); close one or retry later",
+                    close=True,
+                )
         except _Refused as exc:
             await _send_error(ws, exc)
             await ws.close(code=4000 + exc.status)
@@ -186,7 +192,7 @@ class _Session:
         try:
             raw = json.loads(text)
         except ValueError:
-            raise _Refused(400, "a message must be a JSON object, e.g. {\"type\": \"hello\"}") from None
+            raise _Refused(400, 'a message must be a JSON object, e.g. {"type": "hello"}') from None
         kind = raw.get("type") if isinstance(raw, dict) else None
         if kind not in _MESSAGES:
             raise _Refused(400, f"unknown message type {kind!r}; expected one of {sorted(_MESSAGES)}")
@@ -198,7 +204,7 @@ class _Session:
         if isinstance(message, _Hello):
             return await self._hello(message)
         if not self.authorized:
-            raise _Refused(401, "send {\"type\": \"hello\", \"key\": KEY} with the service's API key first", close=True)
+            raise _Refused(401, 'send {"type": "hello", "key": KEY} with the service\'s API key first', close=True)
         if isinstance(message, _Start):
             await self._start(message)
         elif isinstance(message, _Pointer):
@@ -213,15 +219,20 @@ class _Session:
         if self.expected_key is not None and not self.authorized:
             given = (message.key or "").encode("latin-1", "replace")
             if not given or not hmac.compare_digest(given, self.expected_key):
-                raise _Refused(401, "missing or wrong API key: send it as {\"type\": \"hello\", \"key\": KEY}", close=True)
+                raise _Refused(401, 'missing or wrong API key: send it as {"type": "hello", "key": KEY}', close=True)
             self.authorized = True
         service = self.ws.app.state.service
         if not service.ready:
             raise _Refused(503, "policies are still loading; retry in a second", close=True)
-        await self.ws.send_json({
-            "type": "hello", "policies": sorted(service.policies), "goal": goal_polygons(),
-            "saving": self.settings.viewer_data_dir is not None, "maxFps": MAX_FPS,
-        })
+        await self.ws.send_json(
+            {
+                "type": "hello",
+                "policies": sorted(service.policies),
+                "goal": goal_polygons(),
+                "saving": self.settings.viewer_data_dir is not None,
+                "maxFps": MAX_FPS,
+            }
+        )
 
     async def _start(self, message: _Start) -> None:
         policies = self.ws.app.state.service.batchers
@@ -259,8 +270,15 @@ class _Session:
             raise _Refused(409, "nothing to save: the episode has no steps yet")
         episode = self.episode
         path = await asyncio.get_running_loop().run_in_executor(self.executor, save_episode, Path(folder), episode)
-        await self.ws.send_json({"type": "saved", "path": str(path), "steps": episode.length,
-                                 "humanSteps": int(sum(episode.human)), "name": path.name})
+        await self.ws.send_json(
+            {
+                "type": "saved",
+                "path": str(path),
+                "steps": episode.length,
+                "humanSteps": int(sum(episode.human)),
+                "name": path.name,
+            }
+        )
 
 
 async def _send_error(ws: WebSocket, exc: _Refused) -> None:
@@ -288,4 +306,3 @@ def _same_origin(ws: WebSocket) -> bool:
     if origin is None:
         return True  # not a browser; the API key, when set, still applies
     return urlsplit(origin).netloc.lower() == headers.get("host", "").lower()
-

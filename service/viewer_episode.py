@@ -101,10 +101,19 @@ class Episode:
         """What the page draws and reports: the state, the block's corners and the scores so far."""
         agent_x, agent_y, block_x, block_y, angle = (float(v) for v in self.obs)
         return {
-            "type": "state", "step": self.length, "state": [agent_x, agent_y, block_x, block_y, angle],
-            "block": _polygons((block_x, block_y, angle)), "action": self.last_action, "actor": actor,
-            "coverage": self.coverage, "maxReward": self.max_reward, "done": self.done, "success": self.success,
-            "humanSteps": int(sum(self.human)), "seed": self.seed, "policy": self.policy,
+            "type": "state",
+            "step": self.length,
+            "state": [agent_x, agent_y, block_x, block_y, angle],
+            "block": _polygons((block_x, block_y, angle)),
+            "action": self.last_action,
+            "actor": actor,
+            "coverage": self.coverage,
+            "maxReward": self.max_reward,
+            "done": self.done,
+            "success": self.success,
+            "humanSteps": int(sum(self.human)),
+            "seed": self.seed,
+            "policy": self.policy,
         }
 
 
@@ -117,8 +126,14 @@ def save_episode(folder: Path, episode: Episode, extra: dict[str, Any] | None = 
     path = folder / f"{stamp}-{label}-seed{episode.seed}-{uuid.uuid4().hex[:6]}.zarr"
     attrs = {
         "source": "python -m service /viewer: states, actions and who acted (data/human: 1 where a human's pointer gave the action)",
-        "policy": episode.policy, "seed": episode.seed, "steps": episode.length, "human_steps": int(sum(episode.human)),
-        "max_reward": episode.max_reward, "success": episode.success, "created": stamp, **(extra or {}),
+        "policy": episode.policy,
+        "seed": episode.seed,
+        "steps": episode.length,
+        "human_steps": int(sum(episode.human)),
+        "max_reward": episode.max_reward,
+        "success": episode.success,
+        "created": stamp,
+        **(extra or {}),
     }
     arrays = {
         "data/state": np.stack(episode.states).astype(np.float32),
@@ -145,10 +160,20 @@ def write_zarr_v2(path: Path, arrays: dict[str, np.ndarray], attrs: dict[str, An
             _write_json(path / parent / ".zgroup", {"zarr_format": 2})
         folder.mkdir()
         array = np.ascontiguousarray(array)
-        _write_json(folder / ".zarray", {
-            "zarr_format": 2, "shape": list(array.shape), "chunks": list(array.shape), "dtype": array.dtype.str,
-            "compressor": None, "fill_value": 0, "filters": None, "order": "C", "dimension_separator": ".",
-        })
+        _write_json(
+            folder / ".zarray",
+            {
+                "zarr_format": 2,
+                "shape": list(array.shape),
+                "chunks": list(array.shape),
+                "dtype": array.dtype.str,
+                "compressor": None,
+                "fill_value": 0,
+                "filters": None,
+                "order": "C",
+                "dimension_separator": ".",
+            },
+        )
         (folder / ".".join(["0"] * array.ndim)).write_bytes(array.tobytes())
 
 

@@ -6,7 +6,13 @@ from pathlib import Path
 
 import pytest
 
-from tests.service_fixtures import SHIPPED_MODELS, UvicornProcess, cached_chooser_models, cached_test_models, shipped_models_available
+from tests.service_fixtures import (
+    SHIPPED_MODELS,
+    UvicornProcess,
+    cached_chooser_models,
+    cached_test_models,
+    shipped_models_available,
+)
 
 
 @pytest.fixture(scope="session")

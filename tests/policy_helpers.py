@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from training.policies import ActingPolicy
+from policies.base import ActingPolicy
 
 
 def fitted(policy, data):
@@ -14,8 +14,14 @@ def fitted(policy, data):
 
 
 def acting_with(policy, state_mean, state_std, action_mean, action_std) -> ActingPolicy:
-    policy.normalizer.set({"state_mean": list(map(float, state_mean)), "state_std": list(map(float, state_std)),
-                           "action_mean": list(map(float, action_mean)), "action_std": list(map(float, action_std))})
+    policy.normalizer.set(
+        {
+            "state_mean": list(map(float, state_mean)),
+            "state_std": list(map(float, state_std)),
+            "action_mean": list(map(float, action_mean)),
+            "action_std": list(map(float, action_std)),
+        }
+    )
     return ActingPolicy(policy).eval()
 
 

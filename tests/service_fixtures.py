@@ -33,9 +33,9 @@ def build_test_models(models_dir: Path, hidden_dims: tuple[int, ...] = (64, 64),
     """Write random-weight `mse` and `flow` policies (safetensors, card, ONNX) of `horizon`-action chunks into `models_dir`."""
     import torch
 
-    from training.checkpoint import save_checkpoint
+    from policies.checkpoint import save_checkpoint
+    from policies.factory import build_policy
     from training.export import export_onnx
-    from training.policies import build_policy
 
     models_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(0)
@@ -72,7 +72,9 @@ def cached_chooser_models(base: Path) -> Path:
             shutil.copyfile(CHOOSER.with_suffix(suffix), models_dir / f"flow{suffix}")
         card = json.loads(CHOOSER.with_suffix(".json").read_text())
         card["onnx"]["file"] = "flow.onnx"
-        (models_dir / "flow.json").write_text(json.dumps({**card, "name": "flow", "default": False}, indent=2))  # named by its stem
+        (models_dir / "flow.json").write_text(
+            json.dumps({**card, "name": "flow", "default": False}, indent=2)
+        )  # named by its stem
         done.touch()
     return models_dir
 
@@ -100,8 +102,13 @@ class UvicornProcess:
     """The service (plain uvicorn, or `python -m service`) in a subprocess on 127.0.0.1, stopped on exit of the `with` block."""
 
     def __init__(
-        self, env: dict[str, str], python: str = sys.executable, app: str = "service.app:app", cwd: Path = REPO,
-        entry: str = "uvicorn", preexec_fn=None,
+        self,
+        env: dict[str, str],
+        python: str = sys.executable,
+        app: str = "service.app:app",
+        cwd: Path = REPO,
+        entry: str = "uvicorn",
+        preexec_fn=None,
     ) -> None:
         self.models_dir = Path(env.get("PUSHT_MODELS_DIR", "models"))
         self.port = free_port()
@@ -190,11 +197,13 @@ async def raw_burst(port: int, bodies: list[bytes], connections: int = 32) -> li
     streams = await asyncio.gather(*(asyncio.open_connection("127.0.0.1", port) for _ in range(connections)))
     mine: list[list[int]] = [list(range(c, len(bodies), connections)) for c in range(connections)]
     for (_, writer), indices in zip(streams, mine, strict=True):
-        writer.write(b"".join(
-            b"POST /act HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\nContent-Length: %d\r\n\r\n%s"
-            % (len(bodies[i]), bodies[i])
-            for i in indices
-        ))
+        writer.write(
+            b"".join(
+                b"POST /act HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\nContent-Length: %d\r\n\r\n%s"
+                % (len(bodies[i]), bodies[i])
+                for i in indices
+            )
+        )
 
     async def read(reader: asyncio.StreamReader, count: int) -> list[tuple[int, bytes]]:
         out = []

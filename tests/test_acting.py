@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import acting
-from acting.card import CardError
+from policies.card import CardError
 from pusht.seeding import row_noise
 
 REPO = Path(__file__).resolve().parent.parent
@@ -22,15 +22,26 @@ STATES = np.random.default_rng(7).uniform(0, 512, (9, 5)).astype(np.float32)
 
 
 def test_importing_acting_and_running_onnx_imports_no_torch():
-    code = ("import sys, numpy as np, acting; p = acting.load_policy('models/flow.onnx'); "
-            "p.act(np.full((2, 5), 256, np.float32), seeds=[1, 2]); print('torch' in sys.modules)")
+    code = (
+        "import sys, numpy as np, acting; p = acting.load_policy('models/flow.onnx'); "
+        "p.act(np.full((2, 5), 256, np.float32), seeds=[1, 2]); print('torch' in sys.modules)"
+    )
     done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "False"
 
 
-@pytest.mark.parametrize("folder, model", [("shipped", "flow.onnx"), ("shipped", "flow"), ("shipped", "mse.onnx"), ("shipped", "mse"),
-                                           ("chooser", "flow.onnx"), ("chooser", "flow")])
+@pytest.mark.parametrize(
+    "folder, model",
+    [
+        ("shipped", "flow.onnx"),
+        ("shipped", "flow"),
+        ("shipped", "mse.onnx"),
+        ("shipped", "mse"),
+        ("chooser", "flow.onnx"),
+        ("chooser", "flow"),
+    ],
+)
 def test_a_row_depends_on_its_own_state_and_seed_only(folder, model, request):
     # a flow's rows also depend on their seeds' noise
     policy = acting.load_policy((MODELS if folder == "shipped" else request.getfixturevalue("chooser_models")) / model)
@@ -47,8 +58,9 @@ def test_seeds_are_row_noise_and_noise_scale_multiplies_it(chooser_models):
     policy = acting.load_policy(chooser_models / "flow.onnx")  # a flow that reads its start noise
     seeds = list(range(100, 109))
     np.testing.assert_array_equal(policy.act(STATES, seeds=seeds), policy.act(STATES, noise=row_noise(seeds)))
-    np.testing.assert_array_equal(policy.act(STATES, seeds=seeds, noise_scale=0.5),
-                                  policy.act(STATES, noise=row_noise(seeds) * np.float32(0.5)))
+    np.testing.assert_array_equal(
+        policy.act(STATES, seeds=seeds, noise_scale=0.5), policy.act(STATES, noise=row_noise(seeds) * np.float32(0.5))
+    )
     with pytest.raises(ValueError, match="one seed per state"):
         policy.act(STATES, seeds=[1, 2])
     with pytest.raises(ValueError, match="noise must have shape"):
@@ -110,14 +122,17 @@ def _copy(tmp_path: Path, name: str = "flow") -> Path:
     return tmp_path / f"{name}.json"
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda c: c.pop("normalization"), "card is missing fields ['normalization']"),
-    (lambda c: c.update(kind="gan"), "unknown policy kind 'gan'"),
-    (lambda c: c["architecture"].update(horizon=0), "architecture.horizon must be an integer in 1..1024"),
-    (lambda c: c["onnx"].update(num_steps=1000), "onnx.num_steps must be an integer in 1..100"),
-    (lambda c: c["normalization"].update(state_std=[1.0, 1.0]), "normalization.state_std must be a list of 5 numbers"),
-    (lambda c: c.update(onnx="flow.onnx"), "onnx must be null or an object"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda c: c.pop("normalization"), "card is missing fields ['normalization']"),
+        (lambda c: c.update(kind="gan"), "unknown policy kind 'gan'"),
+        (lambda c: c["architecture"].update(horizon=0), "architecture.horizon must be an integer in 1..1024"),
+        (lambda c: c["onnx"].update(num_steps=1000), "onnx.num_steps must be an integer in 1..100"),
+        (lambda c: c["normalization"].update(state_std=[1.0, 1.0]), "normalization.state_std must be a list of 5 numbers"),
+        (lambda c: c.update(onnx="flow.onnx"), "onnx must be null or an object"),
+    ],
+)
 def test_one_reader_names_the_card_and_the_problem(tmp_path, edit, message):
     card_path = _copy(tmp_path)
     card = json.loads(card_path.read_text())
@@ -141,7 +156,7 @@ def test_a_graph_that_does_not_match_its_card_is_refused(tmp_path):
 
 
 def test_a_flow_whose_start_noise_is_scaled_to_zero_draws_none(tmp_path):
-    from training.checkpoint import set_noise_scale
+    from policies.checkpoint import set_noise_scale
 
     for suffix in (".json", ".safetensors"):
         shutil.copyfile(MODELS / f"flow{suffix}", tmp_path / f"flow{suffix}")

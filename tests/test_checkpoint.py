@@ -10,8 +10,9 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from acting.card import CARD_FIELDS
-from training.checkpoint import (
+from policies.base import ActingPolicy
+from policies.card import CARD_FIELDS
+from policies.checkpoint import (
     CheckpointError,
     git_commit,
     load_acting_policy,
@@ -22,8 +23,10 @@ from training.checkpoint import (
     set_noise_scale,
     update_card,
 )
-from training.normalization import Normalizer
-from training.policies import ActingPolicy, FlowPolicy, MSEPolicy, build_policy
+from policies.factory import build_policy
+from policies.flow import FlowPolicy
+from policies.mse import MSEPolicy
+from policies.normalization import Normalizer
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -41,7 +44,9 @@ def _save(tmp_path: Path, kind: str, **kwargs) -> tuple[Path, torch.nn.Module]:
     torch.manual_seed(0)
     policy = build_policy(kind, **kwargs)
     stem = tmp_path / kind
-    save_checkpoint(stem, policy, NORMALIZATION, config={"lr": 3e-4}, steps=123, wall_time_s=4.5, evaluation={"seeds": [100000, 100099]})
+    save_checkpoint(
+        stem, policy, NORMALIZATION, config={"lr": 3e-4}, steps=123, wall_time_s=4.5, evaluation={"seeds": [100000, 100099]}
+    )
     return stem, policy
 
 
@@ -243,13 +248,18 @@ def test_mismatched_architecture(tmp_path: Path) -> None:
     card["architecture"]["hidden_dims"] = [128, 256, 512, 512, 256]
     card["num_parameters"] = sum(p.numel() for p in FlowPolicy(hidden_dims=[128, 256, 512, 512, 256]).parameters())
     stem.with_suffix(".json").write_text(json.dumps(card))
-    with pytest.raises(CheckpointError, match=r"flow\.safetensors: weight net\.\d+\.\w+ has shape .* the card's architecture needs"):
+    with pytest.raises(
+        CheckpointError, match=r"flow\.safetensors: weight net\.\d+\.\w+ has shape .* the card's architecture needs"
+    ):
         load_checkpoint(stem)
 
 
 def test_weights_from_another_layer_count(tmp_path: Path) -> None:
     stem, _ = _save(tmp_path, "flow")
-    save_file({k: v.contiguous() for k, v in FlowPolicy(hidden_dims=[128, 256]).state_dict().items()}, str(stem.with_suffix(".safetensors")))
+    save_file(
+        {k: v.contiguous() for k, v in FlowPolicy(hidden_dims=[128, 256]).state_dict().items()},
+        str(stem.with_suffix(".safetensors")),
+    )
     with pytest.raises(CheckpointError, match=r"flow\.safetensors: weights do not fit the card's flow architecture"):
         load_checkpoint(stem)
 
@@ -294,7 +304,9 @@ def test_legacy_angle_buffers_are_refused_until_converted(tmp_path: Path, kind: 
     weights["angle_mean"] = torch.tensor([NORMALIZATION["state_mean"][-1]])
     weights["angle_std"] = torch.tensor([NORMALIZATION["state_std"][-1]])
     save_file(weights, str(stem.with_suffix(".safetensors")), metadata={"format": "pt", "kind": kind})
-    with pytest.raises(CheckpointError, match=r"safetensors: written before the policy owned its normalization.*convert_checkpoints"):
+    with pytest.raises(
+        CheckpointError, match=r"safetensors: written before the policy owned its normalization.*convert_checkpoints"
+    ):
         load_checkpoint(stem)
     assert convert(stem) and not convert(stem)  # converted once, then current
     state, noise = torch.rand(5, 5) * 512, torch.randn(5, 12, 2)

@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -69,10 +70,22 @@ def free_port() -> int:
 def test_help_documents_flags_and_imports_no_torch():
     proc = run_client("--help", importtime=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
-    for flag in ("--url", "--policy", "--episodes", "--num-envs", "--seed", "--max-steps", "--action-horizon", "--gif", "--out", "--api-key", "--timeout"):
+    for flag in (
+        "--url",
+        "--policy",
+        "--episodes",
+        "--num-envs",
+        "--seed",
+        "--max-steps",
+        "--action-horizon",
+        "--gif",
+        "--out",
+        "--api-key",
+        "--timeout",
+    ):
         assert flag in proc.stdout
     text = " ".join(proc.stdout.split())
-    assert "(default: None)" not in text and "(default: flow)" in text and "(default: 200000)" in text
+    assert "(default: None)" not in text and "(default: its default policy" in text and "(default: 200000)" in text
     assert all(option.count("(default") <= 1 for option in text.split(" --")[1:])
     modules = imported_modules(proc.stderr)
     assert "pusht.rollout" in modules and "httpx" in modules  # the parse works: it sees what is imported
@@ -87,7 +100,9 @@ def test_invalid_url_is_one_line(url):
 
 def test_connection_refused_is_one_line():
     port = free_port()  # nothing listens there once the probe socket is closed
-    line = assert_one_line_error(run_client("--url", f"http://127.0.0.1:{port}", "--episodes", "1", "--num-envs", "1", timeout=60))
+    line = assert_one_line_error(
+        run_client("--url", f"http://127.0.0.1:{port}", "--episodes", "1", "--num-envs", "1", timeout=60)
+    )
     assert "cannot connect" in line and str(port) in line
 
 
@@ -104,7 +119,9 @@ def test_silent_server_times_out_as_one_line():
         server.listen(8)
         port = server.getsockname()[1]
         start = time.perf_counter()
-        proc = run_client("--url", f"http://127.0.0.1:{port}", "--episodes", "1", "--num-envs", "1", "--timeout", "0.5", timeout=60)
+        proc = run_client(
+            "--url", f"http://127.0.0.1:{port}", "--episodes", "1", "--num-envs", "1", "--timeout", "0.5", timeout=60
+        )
         assert time.perf_counter() - start < 30
     assert_one_line_error(proc, "timed out")
 
@@ -116,9 +133,9 @@ def _tiny_flow_model(dest: Path) -> None:
     """A small random-weight flow policy exported to ONNX, for when no shipped model exists yet."""
     import torch
 
-    from training.checkpoint import save_checkpoint
+    from policies.checkpoint import save_checkpoint
+    from policies.factory import build_policy
     from training.export import export_onnx
-    from training.policies import build_policy
 
     torch.manual_seed(0)
     policy = build_policy("flow", hidden_dims=[32, 32], dropout=0.0)
@@ -149,8 +166,23 @@ def server(models_dir) -> str:
     port = free_port()
     env = dict(os.environ, PUSHT_MODELS_DIR=str(models_dir), PUSHT_API_KEY=API_KEY)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"],
-        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "uvicorn",
+            "service.app:app",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--log-level",
+            "warning",
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     url = f"http://127.0.0.1:{port}"
     try:
@@ -188,7 +220,10 @@ def test_e2e_report_gif_and_determinism(server, tmp_path):
     second_proc = run_client("--url", server, "--api-key", API_KEY, *SHORT, importtime=True)
     second = report_of(second_proc)
 
-    assert first["policy"] == "flow" and first["url"] == server
+    listing = httpx.get(f"{server}/policies", headers={"X-API-Key": API_KEY}).json()["policies"]
+    assert (
+        first["policy"] == next(p["name"] for p in listing if p["default"]) and first["url"] == server
+    )  # no --policy: the default
     assert first["episodes"] == 4 and first["seeds"] == [SEED, SEED + 3]
     assert first["action_horizon"] == 12  # the served policy's chunk length, from GET /policies
     assert 0.0 <= first["mean_max_reward"] <= 1.0 and 0.0 <= first["success_rate"] <= 1.0
@@ -209,8 +244,8 @@ def test_e2e_report_gif_and_determinism(server, tmp_path):
 
     records = [json.loads(line) for line in out.read_text().splitlines()]
     assert [r["seed"] for r in records] == list(range(SEED, SEED + 4))
-    assert {r["policy"] for r in records} == {"flow"} and len({r["card"] for r in records}) == 1
-    assert records[0]["card"].startswith("flow@")
+    assert {r["policy"] for r in records} == {first["policy"]} and len({r["card"] for r in records}) == 1
+    assert records[0]["card"].startswith(f"{first['policy']}@")
     with Image.open(gif) as image:
         assert image.format == "GIF"
         assert image.n_frames == records[0]["length"] + 1  # every step, at the control rate: real speed
@@ -221,15 +256,23 @@ def test_e2e_report_gif_and_determinism(server, tmp_path):
 @pytest.mark.slow
 def test_e2e_server_errors_are_one_line(server):
     # the client asks GET /policies for the policy's chunk length first, so that is where an unknown policy shows
-    line = assert_one_line_error(run_client("--url", server, "--api-key", API_KEY, "--policy", "nosuchpolicy", *SHORT),
-                                 f"{server}/policies", "has no policy 'nosuchpolicy'")
+    line = assert_one_line_error(
+        run_client("--url", server, "--api-key", API_KEY, "--policy", "nosuchpolicy", *SHORT),
+        f"{server}/policies",
+        "has no policy 'nosuchpolicy'",
+    )
     assert "'flow'" in line  # what it has instead
     assert_one_line_error(run_client("--url", server, "--api-key", "wrong-key", *SHORT), "401")
     assert_one_line_error(run_client("--url", server, *SHORT), "401")
-    assert_one_line_error(run_client("--url", server + "/no/such/path", "--api-key", API_KEY, *SHORT), "404", "/no/such/path/policies")
+    assert_one_line_error(
+        run_client("--url", server + "/no/such/path", "--api-key", API_KEY, *SHORT), "404", "/no/such/path/policies"
+    )
     # an action horizon longer than the served chunks is refused before any episode
-    assert_one_line_error(run_client("--url", server, "--api-key", API_KEY, "--action-horizon", "13", *SHORT),
-                          "--action-horizon 13", "chunks of 12 actions")
+    assert_one_line_error(
+        run_client("--url", server, "--api-key", API_KEY, "--action-horizon", "13", *SHORT),
+        "--action-horizon 13",
+        "chunks of 12 actions",
+    )
 
 
 @pytest.mark.slow
@@ -248,6 +291,7 @@ def test_http_equals_in_process_evaluation_for_any_num_envs(server, models_dir, 
 
     http = HttpPolicy(server, policy, api_key=API_KEY)
     try:
+
         def recorded(states, row_seeds):
             sent.append(list(row_seeds))
             return http(states, row_seeds)
@@ -265,11 +309,38 @@ def test_http_equals_in_process_evaluation_for_any_num_envs(server, models_dir, 
 def test_client_and_evaluate_write_the_same_episode_records(server, models_dir, tmp_path):
     """The two command lines, with different --num-envs, write identical per-episode files and scores."""
     flags = ["--episodes", "4", "--max-steps", "60", "--seed", str(SEED), "--no-progress"]
-    cli = report_of(run_client("--url", server, "--api-key", API_KEY, "--num-envs", "3", "--out", str(tmp_path / "http.jsonl"), *flags))
+    cli = report_of(
+        run_client(
+            "--url",
+            server,
+            "--api-key",
+            API_KEY,
+            "--policy",
+            "flow",
+            "--num-envs",
+            "3",
+            "--out",
+            str(tmp_path / "http.jsonl"),
+            *flags,
+        )
+    )
     evaluated = subprocess.run(
-        [sys.executable, "-m", "training.evaluate", "--model", str(models_dir / "flow.onnx"), "--num-envs", "2",
-         "--out", str(tmp_path / "local.jsonl"), *flags],
-        cwd=REPO, capture_output=True, text=True, timeout=180,
+        [
+            sys.executable,
+            "-m",
+            "training.evaluate",
+            "--model",
+            str(models_dir / "flow.onnx"),
+            "--num-envs",
+            "2",
+            "--out",
+            str(tmp_path / "local.jsonl"),
+            *flags,
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=180,
     )
     assert evaluated.returncode == 0, evaluated.stderr
     reference = json.loads(evaluated.stdout.splitlines()[-1])

@@ -12,12 +12,12 @@ import pytest
 import torch
 import zarr
 
-from training.config import TrainConfig
-from training.data import DEFAULT_DATASET, DatasetError, Replay, load_replay, make_windows, training_set, window_starts
+from policies.factory import build_policy
+from policies.normalization import Normalizer
+from policies.pace import Pace, goal_distance
 from pusht.geometry import GOAL_POSE
-from training.normalization import Normalizer
-from training.pace import Pace, goal_distance
-from training.policies import build_policy
+from training.config import TrainConfig
+from training.data import DEFAULT_DATASET, DatasetError, ExtraData, Replay, load_replay, make_windows, training_set, window_starts
 
 REPO = Path(__file__).resolve().parent.parent
 FULL_DATASET = REPO.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr"
@@ -98,9 +98,12 @@ def test_a_pace_per_window_hurries_only_far_from_the_goal(replay: Replay) -> Non
     np.testing.assert_array_equal(chunks[far], make_windows(replay, 12, True, 2.0)[1][far])
     np.testing.assert_array_equal(chunks[~far], make_windows(replay, 12, True)[1][~far])
     assert goal_distance(np.array([[0, 0, *GOAL_POSE]]))[0] == 0
-    assert goal_distance(np.array([[0, 0, GOAL_POSE[0] + 40, GOAL_POSE[1], GOAL_POSE[2] + 2 * np.pi - 0.3]]))[0] == pytest.approx(1.5)
-    ramped = Pace(far=2.0, near=1.0, radius=1.0, ramp=2.0).speeds(np.array([[0, 0, *GOAL_POSE], [0, 0, GOAL_POSE[0] + 80, *GOAL_POSE[1:]],
-                                                                        [0, 0, GOAL_POSE[0] + 200, *GOAL_POSE[1:]]]))
+    assert goal_distance(np.array([[0, 0, GOAL_POSE[0] + 40, GOAL_POSE[1], GOAL_POSE[2] + 2 * np.pi - 0.3]]))[0] == pytest.approx(
+        1.5
+    )
+    ramped = Pace(far=2.0, near=1.0, radius=1.0, ramp=2.0).speeds(
+        np.array([[0, 0, *GOAL_POSE], [0, 0, GOAL_POSE[0] + 80, *GOAL_POSE[1:]], [0, 0, GOAL_POSE[0] + 200, *GOAL_POSE[1:]]])
+    )
     np.testing.assert_allclose(ramped, [1.0, 1.5, 2.0])
     with pytest.raises(ValueError, match="pace near must be in"):
         Pace(far=2.0, near=5.0, radius=1.0)
@@ -114,8 +117,14 @@ def test_training_set_reproduces_every_recorded_run_s_statistics(card_path: Path
     if config.get("init"):
         pytest.skip("fine-tuned runs keep their base's normalization")
     copies = config.get("pace_copies", 0)
-    data = training_set(REPO / config["data"], config["horizon"], bool(config.get("pad_episode_end")), pace=TrainConfig(**config).pace(),
-                        pace_copies=copies, seed=config["seed"])
+    data = training_set(
+        REPO / config["data"],
+        config["horizon"],
+        bool(config.get("pad_episode_end")),
+        pace=TrainConfig(**config).pace(),
+        pace_copies=copies,
+        seed=config["seed"],
+    )
     policy = build_policy(card["kind"], **card["architecture"])
     policy.normalizer.set(data.statistics(policy.action_frame))
     assert policy.normalizer.to_dict() == card["normalization"]
@@ -124,7 +133,7 @@ def test_training_set_reproduces_every_recorded_run_s_statistics(card_path: Path
 
 @pytest.mark.parametrize("pad_end", [False, True])
 def test_training_set_is_the_env_unit_windows(replay: Replay, pad_end: bool) -> None:
-    data = training_set(DEFAULT_DATASET, 12, pad_end, extra_data=(DEFAULT_DATASET,))
+    data = training_set(DEFAULT_DATASET, 12, pad_end, extra=ExtraData((DEFAULT_DATASET,)))
     states, chunks = make_windows(replay, 12, pad_end)
     assert data.demo_windows == len(states) and len(data) == 2 * len(states)  # the extra store's windows follow
     assert torch.equal(data.states, torch.cat([torch.from_numpy(states)] * 2))
@@ -133,21 +142,21 @@ def test_training_set_is_the_env_unit_windows(replay: Replay, pad_end: bool) -> 
 
 def test_extra_stride_keeps_the_decision_points_of_each_extra_episode(replay: Replay) -> None:
     """--extra-stride 12: extra windows start only at frames 0, 12, 24, ... of their episode (where a collector chose a chunk)."""
-    data = training_set(DEFAULT_DATASET, 12, True, extra_data=(DEFAULT_DATASET,), extra_stride=12)
+    data = training_set(DEFAULT_DATASET, 12, True, extra=ExtraData((DEFAULT_DATASET,), stride=12))
     starts = np.concatenate([[0], replay.episode_ends[:-1]])
     decisions = np.concatenate([np.arange(s, e, 12) for s, e in zip(starts, replay.episode_ends)])
     states, chunks = make_windows(replay, 12, True)
     assert len(data) - data.demo_windows == len(decisions)
-    assert torch.equal(data.states[data.demo_windows:], torch.from_numpy(states[decisions]))
-    assert torch.equal(data.chunks[data.demo_windows:], torch.from_numpy(chunks[decisions]))
+    assert torch.equal(data.states[data.demo_windows :], torch.from_numpy(states[decisions]))
+    assert torch.equal(data.chunks[data.demo_windows :], torch.from_numpy(chunks[decisions]))
     assert torch.equal(data.states[: data.demo_windows], torch.from_numpy(states))  # the demonstrations keep every window
     with pytest.raises(ValueError, match="extra_stride"):
-        training_set(DEFAULT_DATASET, 12, True, extra_data=(DEFAULT_DATASET,), extra_stride=0)
+        training_set(DEFAULT_DATASET, 12, True, extra=ExtraData((DEFAULT_DATASET,), stride=0))
 
 
 @pytest.mark.parametrize("frame", ["absolute", "agent"])
 def test_statistics_are_the_demonstrations_alone_in_the_frame(replay: Replay, frame: str) -> None:
-    data = training_set(DEFAULT_DATASET, 12, extra_data=(DEFAULT_DATASET,))
+    data = training_set(DEFAULT_DATASET, 12, extra=ExtraData((DEFAULT_DATASET,)))
     stats = data.statistics(frame)
     assert stats.action_frame == frame
     np.testing.assert_allclose(stats.state_mean, replay.states.astype(np.float64).mean(0), rtol=1e-6)
@@ -211,7 +220,9 @@ def test_lowdim_copy_is_small() -> None:
 
 
 def test_make_lowdim_dataset_help() -> None:
-    result = subprocess.run([sys.executable, "scripts/make_lowdim_dataset.py", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [sys.executable, "scripts/make_lowdim_dataset.py", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 0 and "--src" in result.stdout and "--out" in result.stdout
 
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
+from policies.factory import build_policy
+from policies.features import tee_keypoints
 from pusht.geometry import tee_polygons
 from training.ema import WeightAverage
-from training.features import tee_keypoints
-from training.policies import build_policy
 
 REPO = Path(__file__).resolve().parent.parent
 IDENTITY = {"state_mean": [0.0] * 5, "state_std": [1.0] * 5, "action_mean": [0.0] * 2, "action_std": [1.0] * 2}
@@ -21,7 +21,7 @@ IDENTITY = {"state_mean": [0.0] * 5, "state_std": [1.0] * 5, "action_mean": [0.0
 
 def test_decay_warms_up_and_is_capped():
     ema = WeightAverage(build_policy("mse", hidden_dims=[8]), max_decay=0.999)
-    assert ema.decay(1) == pytest.approx(1 - 2 ** -0.75)
+    assert ema.decay(1) == pytest.approx(1 - 2**-0.75)
     assert ema.decay(10) < ema.decay(100) < ema.decay(10_000) == 0.999
     with pytest.raises(ValueError, match="ema decay"):
         WeightAverage(build_policy("mse", hidden_dims=[8]), max_decay=1.0)
@@ -58,19 +58,38 @@ def test_keypoints_are_the_tee_corners_the_env_draws(pose):
 def test_an_ema_keypoint_flow_trains_exports_and_ships_its_average(tmp_path):
     """The saved checkpoint is the average, not the raw weights; it exports and acts the same in ONNX and torch."""
     import acting
-    from training.checkpoint import load_checkpoint
+    from policies.checkpoint import load_checkpoint
     from training.export import export_onnx
 
     arch = '{"angle_encoding": "keypoints", "state_skip": true, "dropout": 0.0, "action_frame": "agent", "hidden_dims": [32, 32]}'
-    common = ["--policy", "flow", "--out-dir", str(tmp_path), "--steps", "60", "--eval-every", "-1", "--arch", arch, "--no-progress"]
+    common = [
+        "--policy",
+        "flow",
+        "--out-dir",
+        str(tmp_path),
+        "--steps",
+        "60",
+        "--eval-every",
+        "-1",
+        "--arch",
+        arch,
+        "--no-progress",
+    ]
     for name, extra in (("raw", []), ("avg", ["--ema-decay", "0.99"])):
-        done = subprocess.run([sys.executable, "-m", "training.train", "--name", name, *common, *extra],
-                              cwd=REPO, capture_output=True, text=True, timeout=300)
+        done = subprocess.run(
+            [sys.executable, "-m", "training.train", "--name", name, *common, *extra],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert done.returncode == 0, done.stderr[-2000:]
     raw, _ = load_checkpoint(tmp_path / "raw" / "last")
     avg, card = load_checkpoint(tmp_path / "avg" / "last")
     assert card["config"]["ema_decay"] == 0.99
-    assert any(not torch.equal(a, b) for a, b in zip(raw.parameters(), avg.parameters()))  # same seed, same steps: only the average differs
+    assert any(
+        not torch.equal(a, b) for a, b in zip(raw.parameters(), avg.parameters())
+    )  # same seed, same steps: only the average differs
     export_onnx(tmp_path / "avg" / "last")
     states = np.random.default_rng(0).uniform(0, 512, (6, 5)).astype(np.float32)
     onnx, torch_policy = acting.load_policy(tmp_path / "avg" / "last.onnx"), acting.load_policy(tmp_path / "avg" / "last")

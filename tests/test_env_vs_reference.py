@@ -114,10 +114,8 @@ def test_rollouts_near_the_goal_cross_the_success_threshold_alike():
         rng = np.random.default_rng(50 + k)
         angle = math.pi / 4 + rng.normal(0.0, 0.05)
         state = _reset_to_state_landing_at(256.0 + rng.normal(0.0, 3.0, 2), angle, (256.0 + 60 * (k - 3), 150.0))
-        policy = lambda obs: _pusher(rng, obs, reach=0.05, noise=6.0)  # noqa: E731
-        _, terminated, max_cov = _rollout_both(
-            ref, ours, policy, 60, f"near goal {k}", {"options": {"reset_to_state": state}}
-        )
+        policy = lambda obs, rng=rng: _pusher(rng, obs, reach=0.05, noise=6.0)  # noqa: E731
+        _, terminated, max_cov = _rollout_both(ref, ours, policy, 60, f"near goal {k}", {"options": {"reset_to_state": state}})
         total_terminated += terminated
         seen_coverage.append(max_cov)
     assert total_terminated > 0, f"no step terminated; max coverages {seen_coverage}"

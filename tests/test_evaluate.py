@@ -12,19 +12,30 @@ import pytest
 import torch
 
 import acting
-from acting.card import Card
+from policies.card import Card
+from policies.checkpoint import load_acting_policy, save_checkpoint
+from policies.factory import build_policy
+from policies.normalization import Normalizer
 from pusht.rollout import decision_seed, row_noise
-from training.checkpoint import load_acting_policy, save_checkpoint
 from training.data import load_replay
-from training.normalization import Normalizer
 from training.evaluate import evaluate_policy, main
-from training.policies import build_policy
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED_DATA = REPO.parent / "shared" / "data" / "pusht" / "pusht_cchi_v7_replay.zarr"
 SHIPPED = REPO / "models"
-REPORT_FIELDS = {"model", "kind", "env", "episodes", "seeds", "mean_max_reward", "mean_max_reward_ci95",
-                 "success_rate", "success_rate_ci95", "mean_length", "wall_time_s"}
+REPORT_FIELDS = {
+    "model",
+    "kind",
+    "env",
+    "episodes",
+    "seeds",
+    "mean_max_reward",
+    "mean_max_reward_ci95",
+    "success_rate",
+    "success_rate_ci95",
+    "mean_length",
+    "wall_time_s",
+}
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +59,9 @@ class RecordingPolicy(acting.Policy):
     """An `acting.Policy` (card in memory) that walks the agent to the block and records the states and noise it was given."""
 
     def __init__(self, kind: str = "flow", horizon: int = 12):
-        super().__init__(Card(Path("fake.json"), {"name": "fake", "kind": kind, "architecture": {"horizon": horizon}, "onnx": None}))
+        super().__init__(
+            Card(Path("fake.json"), {"name": "fake", "kind": kind, "architecture": {"horizon": horizon}, "onnx": None})
+        )
         self.states: list[np.ndarray] = []
         self.noises: list[np.ndarray | None] = []
 
@@ -143,7 +156,7 @@ def test_onnx_and_checkpoint_score_the_same(checkpoint, tmp_path):
         assert x.seed == y.seed and x.length == y.length
         assert x.max_reward == pytest.approx(y.max_reward, abs=1e-3)
 
-    from training.checkpoint import update_card
+    from policies.checkpoint import update_card
 
     update_card(tmp_path / kind, onnx={"file": onnx_path.name, "inputs": ["state"], "num_steps": 10})
     if kind == "flow":
@@ -160,9 +173,27 @@ def test_cli_prints_one_json_line(checkpoint, tmp_path):
     stem, kind = checkpoint
     gif = tmp_path / "episode.gif"
     done = subprocess.run(
-        [sys.executable, "-m", "training.evaluate", "--model", str(stem), "--episodes", "3", "--num-envs", "2",
-         "--seed", "200000", "--max-steps", "24", "--gif", str(gif)],
-        cwd=REPO, capture_output=True, text=True, timeout=600,
+        [
+            sys.executable,
+            "-m",
+            "training.evaluate",
+            "--model",
+            str(stem),
+            "--episodes",
+            "3",
+            "--num-envs",
+            "2",
+            "--seed",
+            "200000",
+            "--max-steps",
+            "24",
+            "--gif",
+            str(gif),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert done.returncode == 0, done.stderr[-2000:]
     lines = done.stdout.strip().splitlines()

@@ -31,11 +31,27 @@ def imported_modules(stderr: str) -> set[str]:
 
 def test_onnx_evaluation_imports_no_torch_and_writes_records_and_gif(tmp_path):
     out, gif = tmp_path / "episodes.jsonl", tmp_path / "first.gif"
-    done = evaluate("--model", str(SHIPPED / "mse.onnx"), "--episodes", "3", "--num-envs", "2", "--seed", "300000",
-                    "--max-steps", "36", "--out", str(out), "--gif", str(gif), "--no-progress", importtime=True)
+    done = evaluate(
+        "--model",
+        str(SHIPPED / "mse.onnx"),
+        "--episodes",
+        "3",
+        "--num-envs",
+        "2",
+        "--seed",
+        "300000",
+        "--max-steps",
+        "36",
+        "--out",
+        str(out),
+        "--gif",
+        str(gif),
+        "--no-progress",
+        importtime=True,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     modules = imported_modules(done.stderr)
-    assert "onnxruntime" in modules and "torch" not in modules and "training.checkpoint" not in modules
+    assert "onnxruntime" in modules and "torch" not in modules and "policies.checkpoint" not in modules
     summary = json.loads(done.stdout)
     assert summary["seeds"] == [300000, 300002] and summary["episodes"] == 3
 
@@ -53,7 +69,9 @@ def test_onnx_evaluation_imports_no_torch_and_writes_records_and_gif(tmp_path):
 
 
 def test_onnx_evaluation_runs_without_torch_and_a_checkpoint_names_the_extra():
-    done = evaluate("--model", str(SHIPPED / "flow.onnx"), "--episodes", "2", "--max-steps", "24", "--no-progress", prelude=NO_TORCH)
+    done = evaluate(
+        "--model", str(SHIPPED / "flow.onnx"), "--episodes", "2", "--max-steps", "24", "--no-progress", prelude=NO_TORCH
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert json.loads(done.stdout)["kind"] == "flow"
 
@@ -65,7 +83,9 @@ def test_onnx_evaluation_runs_without_torch_and_a_checkpoint_names_the_extra():
 
 
 def test_help_shows_defaults_once_and_none_for_required_flags():
-    done = subprocess.run([sys.executable, "-m", "training.evaluate", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    done = subprocess.run(
+        [sys.executable, "-m", "training.evaluate", "--help"], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
     assert done.returncode == 0
     text = " ".join(done.stdout.split())
     assert "(default: None)" not in text and "(default: 200000)" in text and "(default: 100)" in text

@@ -13,11 +13,11 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from training.checkpoint import CheckpointError, load_acting_policy, load_card, save_checkpoint
+from policies.checkpoint import CheckpointError, load_acting_policy, load_card, save_checkpoint
+from policies.factory import build_policy
+from policies.normalization import Normalizer
 from training.data import load_replay
-from training.normalization import Normalizer
 from training.export import export_onnx, main
-from training.policies import build_policy
 
 KINDS = ["mse", "flow"]
 REPO = Path(__file__).resolve().parent.parent
@@ -136,7 +136,9 @@ def test_export_of_a_missing_checkpoint_names_it(tmp_path: Path) -> None:
 
 
 def test_cli_help() -> None:
-    result = subprocess.run([sys.executable, "-m", "training.export", "--help"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [sys.executable, "-m", "training.export", "--help"], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 0 and "--models-dir" in result.stdout and "--checkpoint" in result.stdout
 
 
@@ -173,14 +175,16 @@ def test_a_flow_of_16_action_chunks_exports_and_verifies_in_its_own_shapes(tmp_p
     assert session.get_outputs()[0].shape[1:] == [16, 2]
     onnx_policy, torch_policy = acting.load_policy(tmp_path / "h16.onnx"), acting.load_policy(tmp_path / "h16")
     assert onnx_policy.horizon == torch_policy.horizon == 16
-    states = np.array([[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1], [50.0, 60.0, 70.0, 80.0, 5.0]], np.float32)
+    states = np.array(
+        [[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1], [50.0, 60.0, 70.0, 80.0, 5.0]], np.float32
+    )
     got = onnx_policy.act(states, seeds=[1, 2, 3])
     assert got.shape == (3, 16, 2)
     np.testing.assert_allclose(got, torch_policy.act(states, seeds=[1, 2, 3]), atol=1e-3)
 
 
 def test_default_num_steps_is_a_distilled_flows_own_count(tmp_path: Path) -> None:
-    from training.checkpoint import update_card
+    from policies.checkpoint import update_card
     from training.export import default_num_steps
 
     norm = {"state_mean": [256.0] * 5, "state_std": [100.0] * 5, "action_mean": [256.0] * 2, "action_std": [100.0] * 2}

@@ -14,13 +14,13 @@ import onnxruntime as ort
 import pytest
 import torch
 
+from policies.checkpoint import load_acting_policy, load_card, load_checkpoint
+from policies.factory import build_policy
 from pusht.env import PushTEnv
-from training.checkpoint import load_acting_policy, load_card, load_checkpoint
 from training.chunk_env import ChunkVectorEnv
 from training.export import export_onnx
 from training.finetune import finetune
 from training.finetune_config import FinetuneConfig, parse_config
-from training.policies import build_policy
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED = REPO / "models" / "flow"  # the plain flow that fine-tuning starts from
@@ -55,14 +55,31 @@ def test_config_is_validated_and_reproducible() -> None:
 
 
 def test_help_runs() -> None:
-    out = subprocess.run([sys.executable, "-m", "training.finetune", "--help"], capture_output=True, text=True, cwd=REPO, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "training.finetune", "--help"], capture_output=True, text=True, cwd=REPO, timeout=120
+    )
     assert out.returncode == 0 and "--stretches" in out.stdout and "default: 0.2" in out.stdout
 
 
 def _tiny(tmp_path: Path, **overrides) -> FinetuneConfig:
-    settings = dict(name="ft", out_dir=str(tmp_path), iterations=3, num_envs=8, rollout_decisions=3, eval_every=3, eval_episodes=4,
-                    log_every=1, batch_size=12, learning_starts=12, init=str(SHIPPED), progress=False, label_envs=2,
-                    updates_per_decision=2, outcome_dims="32", candidates=4)
+    settings = dict(
+        name="ft",
+        out_dir=str(tmp_path),
+        iterations=3,
+        num_envs=8,
+        rollout_decisions=3,
+        eval_every=3,
+        eval_episodes=4,
+        log_every=1,
+        batch_size=12,
+        learning_starts=12,
+        init=str(SHIPPED),
+        progress=False,
+        label_envs=2,
+        updates_per_decision=2,
+        outcome_dims="32",
+        candidates=4,
+    )
     return FinetuneConfig(**{**settings, **overrides})
 
 
@@ -70,7 +87,9 @@ def test_a_short_real_run_saves_a_flow_that_exports_and_acts(tmp_path: Path) -> 
     run = finetune(_tiny(tmp_path)).dir
     card = load_card(run / "last")
     assert card["architecture"]["outcome_dims"] == [32] and card["finished"] and card["steps"] == 3
-    assert card["evaluation"]["seeds"] == [400000, 400003] and card["reproduce"]["finetune"].startswith("python -m training.finetune")
+    assert card["evaluation"]["seeds"] == [400000, 400003] and card["reproduce"]["finetune"].startswith(
+        "python -m training.finetune"
+    )
     records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in records if r["type"] == "train"] == [1, 2, 3]
     assert [r["step"] for r in records if r["type"] == "eval"] == [0, 3]
@@ -113,10 +132,40 @@ def test_lookahead_predicts_a_real_step_and_leaves_the_env_alone() -> None:
 
 
 def test_a_reused_name_is_refused_and_a_stopped_run_resumes(tmp_path: Path) -> None:
-    cmd = [sys.executable, "-m", "training.finetune", "--init", str(SHIPPED), "--name", "r", "--out-dir", str(tmp_path), "--num-envs", "4",
-           "--rollout-decisions", "1", "--iterations", "300", "--eval-every", "0", "--checkpoint-every", "50", "--log-every", "1",
-           "--outcome-dims", "16", "--candidates", "2", "--label-envs", "1", "--batch-size", "4", "--updates-per-decision", "1",
-           "--no-progress"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "training.finetune",
+        "--init",
+        str(SHIPPED),
+        "--name",
+        "r",
+        "--out-dir",
+        str(tmp_path),
+        "--num-envs",
+        "4",
+        "--rollout-decisions",
+        "1",
+        "--iterations",
+        "300",
+        "--eval-every",
+        "0",
+        "--checkpoint-every",
+        "50",
+        "--log-every",
+        "1",
+        "--outcome-dims",
+        "16",
+        "--candidates",
+        "2",
+        "--label-envs",
+        "1",
+        "--batch-size",
+        "4",
+        "--updates-per-decision",
+        "1",
+        "--no-progress",
+    ]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     log = tmp_path / "r" / "log.jsonl"
     deadline = time.monotonic() + 240
@@ -133,7 +182,11 @@ def test_a_reused_name_is_refused_and_a_stopped_run_resumes(tmp_path: Path) -> N
     again = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=120)
     assert again.returncode == 2 and "already exists" in again.stderr and "Traceback" not in again.stderr
     changed = subprocess.run([*cmd, "--resume", "--critic-lr", "0.1"], cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert changed.returncode == 2 and "critic_lr" in changed.stderr and json.loads((tmp_path / "r" / "state.json").read_text()) == state
+    assert (
+        changed.returncode == 2
+        and "critic_lr" in changed.stderr
+        and json.loads((tmp_path / "r" / "state.json").read_text()) == state
+    )
 
     done = subprocess.run([*cmd, "--resume"], cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr

@@ -23,14 +23,35 @@ EPISODES = ["--episodes", "3", "--max-steps", "64", "--seed", str(SEED), "--no-p
 @pytest.fixture(scope="module")
 def h16_models(tmp_path_factory) -> Path:
     """A short real training run with 16-action chunks, put in a models dir as the policy `h16` (weights, card, ONNX)."""
-    from training.checkpoint import load_checkpoint, save_checkpoint
+    from policies.checkpoint import load_checkpoint, save_checkpoint
     from training.export import export_onnx
 
     runs = tmp_path_factory.mktemp("runs")
     done = subprocess.run(
-        [sys.executable, "-m", "training.train", "--policy", "flow", "--name", "h16", "--out-dir", str(runs), "--steps", "200",
-         "--horizon", str(HORIZON), "--eval-every", "-1", "--arch", '{"hidden_dims": [64, 64]}', "--no-progress"],
-        cwd=REPO, capture_output=True, text=True, timeout=600,
+        [
+            sys.executable,
+            "-m",
+            "training.train",
+            "--policy",
+            "flow",
+            "--name",
+            "h16",
+            "--out-dir",
+            str(runs),
+            "--steps",
+            "200",
+            "--horizon",
+            str(HORIZON),
+            "--eval-every",
+            "-1",
+            "--arch",
+            '{"hidden_dims": [64, 64]}',
+            "--no-progress",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert done.returncode == 0, done.stderr[-3000:]
     policy, card = load_checkpoint(runs / "h16" / "last")
@@ -55,9 +76,22 @@ def test_horizon_16_trains_exports_evaluates_and_serves(h16_models: Path, tmp_pa
     assert in_process.decisions == 4  # 64 steps in chunks of 16, executed whole
 
     evaluated = subprocess.run(
-        [sys.executable, "-m", "training.evaluate", "--model", str(h16_models / "h16.onnx"), "--num-envs", "2",
-         "--out", str(tmp_path / "local.jsonl"), *EPISODES],
-        cwd=REPO, capture_output=True, text=True, timeout=300,
+        [
+            sys.executable,
+            "-m",
+            "training.evaluate",
+            "--model",
+            str(h16_models / "h16.onnx"),
+            "--num-envs",
+            "2",
+            "--out",
+            str(tmp_path / "local.jsonl"),
+            *EPISODES,
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert evaluated.returncode == 0, evaluated.stderr[-2000:]
     with UvicornProcess({"PUSHT_MODELS_DIR": str(h16_models)}) as server:
@@ -67,9 +101,23 @@ def test_horizon_16_trains_exports_evaluates_and_serves(h16_models: Path, tmp_pa
         assert answer.status_code == 200, answer.text
         assert np.asarray(answer.json()["actions"]).shape == (HORIZON, 2)
         client = subprocess.run(
-            [sys.executable, "clients/rollout.py", "--url", server.url, "--policy", "h16", "--num-envs", "3",
-             "--out", str(tmp_path / "http.jsonl"), *EPISODES],
-            cwd=REPO, capture_output=True, text=True, timeout=300,
+            [
+                sys.executable,
+                "clients/rollout.py",
+                "--url",
+                server.url,
+                "--policy",
+                "h16",
+                "--num-envs",
+                "3",
+                "--out",
+                str(tmp_path / "http.jsonl"),
+                *EPISODES,
+            ],
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=300,
         )
     assert client.returncode == 0, client.stderr[-2000:]
     local = [json.loads(line) for line in (tmp_path / "local.jsonl").read_text().splitlines()]

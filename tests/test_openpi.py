@@ -57,8 +57,20 @@ def openpi_python(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempP
     if not (venv / ".complete").is_file():
         start = time.monotonic()
         subprocess.run([sys.executable, "-m", "venv", "--clear", str(venv)], check=True)
-        pip = subprocess.run([str(python), "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
-                              "openpi-client==0.1.2", "typing_extensions"], capture_output=True, text=True)
+        pip = subprocess.run(
+            [
+                str(python),
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+                "openpi-client==0.1.2",
+                "typing_extensions",
+            ],
+            capture_output=True,
+            text=True,
+        )
         if pip.returncode != 0:
             pytest.skip(f"cannot install openpi-client into a venv: {pip.stderr.strip()[-500:]}")
         (venv / ".complete").write_text(f"installed in {time.monotonic() - start:.1f} s\n")
@@ -100,8 +112,8 @@ def test_official_client_gets_the_actions_of_act(openpi_python: str, which: str,
     assert out["answers"][1]["timing"] == ["infer_ms", "prev_total_ms"]
     assert "Error in inference server" in out["bad"] and "'state' must be 5 numbers" in out["bad"]
     assert out["again"] == out["answers"][0]["actions"]
-    # only where another seed moves the actions does the equality with /act check the seed's way through
-    assert np.array_equal(np.float32(_act(server.url, STATES[0], 1001)), np.float32(out["again"])) == (which == "server")
+    # another seed moves the flow's actions: the equality with /act checks the seed's way through
+    assert not np.array_equal(np.float32(_act(server.url, STATES[0], 1001)), np.float32(out["again"]))
 
 
 def test_bad_messages_get_errors_and_the_connection_stays(server: UvicornProcess) -> None:
@@ -134,7 +146,9 @@ def test_bad_messages_get_errors_and_the_connection_stays(server: UvicornProcess
             assert error["status"] == status and text in error["error"], (message, error)
         ws.send(pack({"state": np.asarray(STATES[0], np.float32)}))
         actions = unpack(ws.recv())["actions"]
-    expected = httpx.post(f"{server.url}/act", json={"policy": "mse", "state": STATES[0]}, headers={"X-API-Key": KEY}).json()["actions"]
+    expected = httpx.post(f"{server.url}/act", json={"policy": "mse", "state": STATES[0]}, headers={"X-API-Key": KEY}).json()[
+        "actions"
+    ]
     assert actions.dtype == np.float32 and np.array_equal(actions, np.float32(expected))
 
 
@@ -147,7 +161,9 @@ def test_bad_messages_get_errors_and_the_connection_stays(server: UvicornProcess
         ("/openpi/nope", {"Authorization": f"Api-Key {KEY}"}, 404, "unknown policy 'nope'"),
     ],
 )
-def test_refused_handshakes_get_json_errors(server: UvicornProcess, path: str, headers: dict[str, str], status: int, text: str) -> None:
+def test_refused_handshakes_get_json_errors(
+    server: UvicornProcess, path: str, headers: dict[str, str], status: int, text: str
+) -> None:
     """A missing or wrong key, a browser's Origin, an unknown policy: an HTTP JSON error instead of the upgrade."""
     origin = headers.pop("origin", None)
     with pytest.raises(InvalidStatus) as info:

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import torch
 
+from policies.checkpoint import load_checkpoint
+from policies.chooser import OutcomeModel, OutcomeSelector, goal_corner_distance
+from policies.factory import build_policy
+from policies.selection import orthogonal_maps
 from pusht.geometry import GOAL_POSE, coverage
-from training.checkpoint import load_checkpoint
 from training.chunk_env import ChunkVectorEnv
-from training.outcome import OutcomeModel, OutcomeSelector, goal_corner_distance
-from training.policies import build_policy
-from training.selection import orthogonal_maps
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED = REPO / "models" / "flow"  # the plain flow inside the chooser
@@ -27,8 +27,15 @@ CHOOSER = REPO / "models" / "flow-chooser"
 
 def _chooser_from_shipped(candidates: int, dims=(32,), stretches=(1.0,)):
     base, card = load_checkpoint(SHIPPED)
-    policy = build_policy("flow", **{**card["architecture"], "outcome_dims": list(dims), "outcome_candidates": candidates,
-                                     "outcome_stretches": list(stretches)})
+    policy = build_policy(
+        "flow",
+        **{
+            **card["architecture"],
+            "outcome_dims": list(dims),
+            "outcome_candidates": candidates,
+            "outcome_stretches": list(stretches),
+        },
+    )
     policy.load_state_dict(base.state_dict(), strict=False)
     policy.normalizer.set(base.normalizer)
     return base.eval(), policy.eval()
@@ -36,7 +43,9 @@ def _chooser_from_shipped(candidates: int, dims=(32,), stretches=(1.0,)):
 
 def test_goal_corner_distance_is_zero_at_the_goal_and_grows_with_the_error() -> None:
     gx, gy, ga = GOAL_POSE
-    poses = torch.tensor([[gx, gy, ga], [gx + 2, gy, ga], [gx + 8, gy, ga], [gx, gy, ga + 0.05], [gx, gy, ga + 0.2]], dtype=torch.float64)
+    poses = torch.tensor(
+        [[gx, gy, ga], [gx + 2, gy, ga], [gx + 8, gy, ga], [gx, gy, ga + 0.05], [gx, gy, ga + 0.2]], dtype=torch.float64
+    )
     d = goal_corner_distance(poses)
     assert d[0] < 1e-12 and d[1] < d[2] and d[3] < d[4]
     covered = [coverage(*p) for p in poses.tolist()]
@@ -104,7 +113,9 @@ def test_a_flow_choosing_among_one_candidate_is_the_plain_flow() -> None:
 @pytest.mark.parametrize("stretches", [(1.0,), (1.0, 1.5, 0.7)])
 def test_a_flow_with_candidates_plays_one_of_its_candidate_chunks(stretches) -> None:
     _, policy = _chooser_from_shipped(candidates=5, stretches=stretches)
-    states = torch.tensor([[150.0, 350.0, 240.0, 260.0, 0.5], [300.0, 100.0, 200.0, 300.0, 2.0], [260.0, 250.0, 255.0, 258.0, math.pi / 4]])
+    states = torch.tensor(
+        [[150.0, 350.0, 240.0, 260.0, 0.5], [300.0, 100.0, 200.0, 300.0, 2.0], [260.0, 250.0, 255.0, 258.0, math.pi / 4]]
+    )
     noise = torch.randn(3, 12, 2)
     with torch.no_grad():
         acted = policy.act(states, noise)
@@ -140,7 +151,7 @@ def test_outcome_keys_are_validated() -> None:
 
 
 def test_a_chooser_counts_every_candidate_pass(tmp_path: Path) -> None:
-    from acting.card import Card
+    from policies.card import Card
     from training.ship import reproduce_commands
 
     arch = {"hidden_dims": [8], "horizon": 12, "outcome_dims": [8], "outcome_candidates": 16}
@@ -148,10 +159,17 @@ def test_a_chooser_counts_every_candidate_pass(tmp_path: Path) -> None:
     assert card.network_evaluations() == 16 * 11 and card.network_evaluations(2) == 16 * 3
     plain = Card(tmp_path / "p.json", {"name": "p", "kind": "flow", "architecture": {"hidden_dims": [8]}, "onnx": None})
     assert plain.network_evaluations() == 10
-    stretched = Card(tmp_path / "s.json", {"name": "s", "kind": "flow", "architecture": {**arch, "outcome_stretches": [1.0, 1.5, 2.0]}, "onnx": None})
+    stretched = Card(
+        tmp_path / "s.json",
+        {"name": "s", "kind": "flow", "architecture": {**arch, "outcome_stretches": [1.0, 1.5, 2.0]}, "onnx": None},
+    )
     assert stretched.network_evaluations() == 16 * 10 + 16 * 3  # the flow integrates 16 chunks; the model scores 48
     # a fine-tuned run ships with its own command, not a training.train one
-    tuned = {"architecture": arch, "config": {"algo": "outcome"}, "reproduce": {"finetune": "python -m training.finetune --algo outcome"}}
+    tuned = {
+        "architecture": arch,
+        "config": {"algo": "outcome"},
+        "reproduce": {"finetune": "python -m training.finetune --algo outcome"},
+    }
     assert reproduce_commands(tuned, Path("runs/x"), "flow")[0] == "python -m training.finetune --algo outcome"
 
 
@@ -161,8 +179,22 @@ def test_an_outcome_fit_continues_a_chooser_of_the_same_widths(tmp_path: Path) -
 
     with pytest.raises(ValueError, match="must match to start from it"):
         finetune(FinetuneConfig(init=str(CHOOSER), outcome_dims="8", name="again", out_dir=str(tmp_path), progress=False))
-    run = finetune(FinetuneConfig(init=str(CHOOSER), stretches="1,1.5", iterations=1, num_envs=2, rollout_decisions=1,
-                                  label_envs=1, eval_every=0, batch_size=8, learning_starts=8, name="warm", out_dir=str(tmp_path), progress=False))
+    run = finetune(
+        FinetuneConfig(
+            init=str(CHOOSER),
+            stretches="1,1.5",
+            iterations=1,
+            num_envs=2,
+            rollout_decisions=1,
+            label_envs=1,
+            eval_every=0,
+            batch_size=8,
+            learning_starts=8,
+            name="warm",
+            out_dir=str(tmp_path),
+            progress=False,
+        )
+    )
     policy, card = load_checkpoint(str(run.dir / "last"))
     chooser, _ = load_checkpoint(CHOOSER)
     assert card["architecture"]["outcome_stretches"] == [1.0, 1.5] and policy.outcome.choices == 32
@@ -192,36 +224,51 @@ def test_a_resumed_outcome_fit_goes_on_with_its_random_stream(tmp_path: Path) ->
 
 
 def test_bad_stretches_on_the_command_line_get_one_line_naming_them() -> None:
-    done = subprocess.run([sys.executable, "-m", "training.finetune", "--init", str(SHIPPED), "--stretches", "1.5,1"], cwd=REPO,
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "training.finetune", "--init", str(SHIPPED), "--stretches", "1.5,1"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 2 and "stretches must be comma-separated numbers in (0, 4] starting with 1" in done.stderr
 
 
 def test_a_stretched_chooser_exports_and_the_graph_acts_as_torch(tmp_path: Path) -> None:
     import acting
-    from training.checkpoint import save_checkpoint
+    from policies.checkpoint import save_checkpoint
     from training.export import export_onnx
 
     _, policy = _chooser_from_shipped(candidates=4, stretches=(1.0, 1.4))
     save_checkpoint(tmp_path / "c", policy, policy.normalizer.to_dict())
     info = export_onnx(tmp_path / "c")
     assert info["max_abs_diff"] < 1e-3
-    states = np.array([[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1], [250.0, 240.0, 300.0, 280.0, 0.5]], np.float32)
+    states = np.array(
+        [[222.0, 97.0, 222.0, 222.0, 0.8], [300.0, 400.0, 250.0, 260.0, 3.1], [250.0, 240.0, 300.0, 280.0, 0.5]], np.float32
+    )
     onnx_policy, torch_policy = acting.load_policy(tmp_path / "c.onnx"), acting.load_policy(tmp_path / "c")
     np.testing.assert_allclose(onnx_policy.act(states, seeds=[1, 2, 3]), torch_policy.act(states, seeds=[1, 2, 3]), atol=1e-3)
     assert torch_policy.card.network_evaluations() == 4 * 10 + 4 * 2
 
 
 def test_setting_the_candidate_count_keeps_every_learned_weight_and_the_first_maps(tmp_path: Path) -> None:
-    from training.checkpoint import save_checkpoint, set_outcome_candidates
+    from policies.checkpoint import save_checkpoint, set_outcome_candidates
     from training.ship import reproduce_commands
 
     _, policy = _chooser_from_shipped(candidates=4, stretches=(1.0, 1.5))
-    save_checkpoint(tmp_path / "c", policy, policy.normalizer.to_dict(), config={"algo": "outcome", "candidates": 4},
-                    reproduce={"finetune": "python -m training.finetune --algo outcome --candidates 4"})
+    save_checkpoint(
+        tmp_path / "c",
+        policy,
+        policy.normalizer.to_dict(),
+        config={"algo": "outcome", "candidates": 4},
+        reproduce={"finetune": "python -m training.finetune --algo outcome --candidates 4"},
+    )
     card = set_outcome_candidates(tmp_path / "c", 8)
     resized, loaded = load_checkpoint(tmp_path / "c")
-    assert card["architecture"]["outcome_candidates"] == loaded["architecture"]["outcome_candidates"] == 8 and resized.outcome.choices == 16
+    assert (
+        card["architecture"]["outcome_candidates"] == loaded["architecture"]["outcome_candidates"] == 8
+        and resized.outcome.choices == 16
+    )
     before, after = policy.state_dict(), resized.state_dict()
     assert all(torch.equal(before[k], after[k]) for k in before if k != "outcome.rotations")
     assert torch.equal(after["outcome.rotations"][:4], before["outcome.rotations"])

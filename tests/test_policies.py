@@ -5,9 +5,14 @@ from __future__ import annotations
 import pytest
 import torch
 
-from training.networks import count_parameters
-from tests.policy_helpers import acting_with as _acting, fitted as _fitted, loss_before_and_after_training as _loss_before_and_after_training
-from training.policies import FlowPolicy, MSEPolicy, Policy, build_policy
+from policies.base import Policy
+from policies.factory import build_policy
+from policies.flow import FlowPolicy
+from policies.mse import MSEPolicy
+from policies.networks import count_parameters
+from tests.policy_helpers import acting_with as _acting
+from tests.policy_helpers import fitted as _fitted
+from tests.policy_helpers import loss_before_and_after_training as _loss_before_and_after_training
 
 KINDS = ["mse", "flow"]
 IDENTITY = {"state_mean": [0.0] * 5, "state_std": [1.0] * 5, "action_mean": [0.0] * 2, "action_std": [1.0] * 2}
@@ -37,13 +42,17 @@ def test_interface_and_shapes(kind: str) -> None:
 def test_build_policy_rebuilds_from_architecture(kind: str) -> None:
     policy = build_policy(kind, hidden_dims=[32, 16], dropout=0.0)
     rebuilt = build_policy(kind, **policy.architecture)
-    assert rebuilt.architecture == policy.architecture == {
-        "hidden_dims": [32, 16],
-        "dropout": 0.0,
-        "horizon": 12,
-        "action_dim": 2,
-        "state_dim": 5,
-    }
+    assert (
+        rebuilt.architecture
+        == policy.architecture
+        == {
+            "hidden_dims": [32, 16],
+            "dropout": 0.0,
+            "horizon": 12,
+            "action_dim": 2,
+            "state_dim": 5,
+        }
+    )
     assert count_parameters(rebuilt) == count_parameters(policy)
 
 

@@ -10,16 +10,16 @@ import pytest
 import torch
 
 from acting import load_policy
+from policies.checkpoint import load_acting_policy, save_checkpoint
+from policies.factory import build_policy
+from policies.features import motion_features
+from policies.normalization import Normalizer
+from policies.pace import Pace, goal_distance
 from pusht.geometry import GOAL_POSE
 from pusht.rollout import run_episodes
-from training.checkpoint import load_acting_policy, save_checkpoint
 from training.config import TrainConfig
 from training.data import chunks_at, load_replay, previous_states, training_set
 from training.export import export_onnx
-from training.features import motion_features
-from training.normalization import Normalizer
-from training.pace import Pace, goal_distance
-from training.policies import build_policy
 from training.train import train
 
 ARCH = {"angle_encoding": "sincos", "state_skip": True, "action_frame": "agent", "prev_state": True}
@@ -62,7 +62,9 @@ def test_the_previous_state_changes_the_actions_and_defaults_to_no_motion(kind, 
         default = policy.act(state, noise)
     assert not torch.allclose(moving, still)
     assert torch.equal(still, default)
-    loss = policy.compute_loss(state, torch.as_tensor(np.stack([replay.actions[i:i + 12] for i in range(10, 14)])), prev_state=prev)
+    loss = policy.compute_loss(
+        state, torch.as_tensor(np.stack([replay.actions[i : i + 12] for i in range(10, 14)])), prev_state=prev
+    )
     assert torch.isfinite(loss)
 
 
@@ -87,12 +89,16 @@ def test_onnx_takes_prev_state_and_matches_torch(exported, replay) -> None:
     session = ort.InferenceSession(str(exported.with_suffix(".onnx")), providers=["CPUExecutionProvider"])
     assert [i.name for i in session.get_inputs()] == ["state", "noise", "prev_state"]
     rng = np.random.default_rng(0)
-    feeds = {"state": replay.states[20:25].astype(np.float32), "noise": rng.standard_normal((5, 12, 2)).astype(np.float32),
-             "prev_state": replay.states[19:24].astype(np.float32)}
+    feeds = {
+        "state": replay.states[20:25].astype(np.float32),
+        "noise": rng.standard_normal((5, 12, 2)).astype(np.float32),
+        "prev_state": replay.states[19:24].astype(np.float32),
+    }
     got = session.run(["actions"], feeds)[0]
     with torch.inference_mode():
-        want = load_acting_policy(exported)(torch.from_numpy(feeds["state"]), torch.from_numpy(feeds["noise"]),
-                                            prev_state=torch.from_numpy(feeds["prev_state"])).numpy()
+        want = load_acting_policy(exported)(
+            torch.from_numpy(feeds["state"]), torch.from_numpy(feeds["noise"]), prev_state=torch.from_numpy(feeds["prev_state"])
+        ).numpy()
     assert np.abs(got - want).max() < 1e-3
 
 
@@ -123,8 +129,13 @@ def _rollout(policy):
     return act
 
 
-PACE_ARCH = {"angle_encoding": "sincos", "state_skip": True, "action_frame": "agent", "pace_input": True,
-             "acting_pace": [2.0, 1.0, 2.0, 0.0]}
+PACE_ARCH = {
+    "angle_encoding": "sincos",
+    "state_skip": True,
+    "action_frame": "agent",
+    "pace_input": True,
+    "acting_pace": [2.0, 1.0, 2.0, 0.0],
+}
 
 
 def test_pace_copies_repeat_each_window_at_paces_from_one_to_the_fastest(replay) -> None:
@@ -161,7 +172,11 @@ def test_a_pace_input_trains_only_with_pace_copies(tmp_path) -> None:
     with pytest.raises(ValueError, match="pace input trains with --pace-copies"):
         train(TrainConfig(policy="flow", steps=1, arch=arch, out_dir=str(tmp_path), eval_every=-1, progress=False))
     with pytest.raises(ValueError, match="pace input trains with --pace-copies"):
-        train(TrainConfig(policy="flow", steps=1, pace_copies=2, action_speed=2.0, out_dir=str(tmp_path), eval_every=-1, progress=False))
+        train(
+            TrainConfig(
+                policy="flow", steps=1, pace_copies=2, action_speed=2.0, out_dir=str(tmp_path), eval_every=-1, progress=False
+            )
+        )
     assert not (tmp_path / "flow").exists()
 
 
@@ -173,8 +188,13 @@ def test_onnx_of_a_pace_input_matches_torch_near_and_far(tmp_path, replay) -> No
     export_onnx(stem)
     session = ort.InferenceSession(str(stem.with_suffix(".onnx")), providers=["CPUExecutionProvider"])
     assert [i.name for i in session.get_inputs()] == ["state", "noise"]
-    states = np.array([[100.0, 100.0, GOAL_POSE[0] + 20, GOAL_POSE[1], GOAL_POSE[2]],
-                       [100.0, 100.0, GOAL_POSE[0] + 200, GOAL_POSE[1], GOAL_POSE[2]]], dtype=np.float32)
+    states = np.array(
+        [
+            [100.0, 100.0, GOAL_POSE[0] + 20, GOAL_POSE[1], GOAL_POSE[2]],
+            [100.0, 100.0, GOAL_POSE[0] + 200, GOAL_POSE[1], GOAL_POSE[2]],
+        ],
+        dtype=np.float32,
+    )
     noise = np.random.default_rng(0).standard_normal((2, 12, 2)).astype(np.float32)
     got = session.run(["actions"], {"state": states, "noise": noise})[0]
     with torch.inference_mode():

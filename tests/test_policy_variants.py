@@ -5,9 +5,12 @@ from __future__ import annotations
 import pytest
 import torch
 
-from training.networks import count_parameters
-from tests.policy_helpers import acting_with as _acting, fitted as _fitted, loss_before_and_after_training as _loss_before_and_after_training
-from training.policies import ActingPolicy, build_policy
+from policies.base import ActingPolicy
+from policies.factory import build_policy
+from policies.networks import count_parameters
+from tests.policy_helpers import acting_with as _acting
+from tests.policy_helpers import fitted as _fitted
+from tests.policy_helpers import loss_before_and_after_training as _loss_before_and_after_training
 
 KINDS = ["mse", "flow"]
 IDENTITY = {"state_mean": [0.0] * 5, "state_std": [1.0] * 5, "action_mean": [0.0] * 2, "action_std": [1.0] * 2}
@@ -20,7 +23,13 @@ MSE_VARIANT = {"angle_encoding": "sincos", "dropout": 0.0}
 # one combined variant per kind exercises every new op (sin/cos, per-layer concatenation, time features)
 COMBINED = {
     "mse": {"angle_encoding": "sincos", "state_skip": True, "dropout": 0.0},
-    "flow": {"angle_encoding": "sincos", "state_skip": True, "time_embedding": "sinusoidal", "action_frame": "agent", "dropout": 0.0},
+    "flow": {
+        "angle_encoding": "sincos",
+        "state_skip": True,
+        "time_embedding": "sinusoidal",
+        "action_frame": "agent",
+        "dropout": 0.0,
+    },
 }
 VARIANTS = [("mse", MSE_VARIANT), ("mse", COMBINED["mse"]), ("flow", FLOW_VARIANT), ("flow", COMBINED["flow"])]
 
@@ -63,7 +72,11 @@ def test_the_normalization_is_not_in_the_weights(kind: str, arch: dict) -> None:
     policy = build_policy(kind, **arch)
     assert not any(name.startswith("normalizer.") or name.startswith("angle_") for name in policy.state_dict())
     assert {name for name, _ in policy.named_buffers() if name.startswith("normalizer.")} == {
-        "normalizer.state_mean", "normalizer.state_std", "normalizer.action_mean", "normalizer.action_std"}
+        "normalizer.state_mean",
+        "normalizer.state_std",
+        "normalizer.action_mean",
+        "normalizer.action_std",
+    }
 
 
 @pytest.mark.parametrize(
@@ -181,7 +194,7 @@ def test_variants_learn_on_real_windows(kind: str, arch: dict, real_batch) -> No
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_variant_checkpoint_round_trip(kind: str, real_batch, tmp_path) -> None:
-    from training.checkpoint import load_acting_policy, load_checkpoint, save_checkpoint
+    from policies.checkpoint import load_acting_policy, load_checkpoint, save_checkpoint
 
     _, _, data = real_batch
     policy = _variant(kind, COMBINED[kind], data).eval()
@@ -201,7 +214,7 @@ def test_variant_checkpoint_round_trip(kind: str, real_batch, tmp_path) -> None:
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_variant_onnx_export_agrees_with_torch(kind: str, real_batch, tmp_path) -> None:
-    from training.checkpoint import save_checkpoint
+    from policies.checkpoint import save_checkpoint
     from training.export import VERIFY_ATOL, export_onnx
 
     _, _, data = real_batch

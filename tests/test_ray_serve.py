@@ -32,8 +32,19 @@ def ray_service():
     """The service under Ray Serve with 2 replicas, in its own session so its whole process group can be cleaned up."""
     port = free_port()
     env = {**os.environ, "PUSHT_MODELS_DIR": str(SHIPPED_MODELS), "RAY_ADDRESS": ""}
-    cmd = [sys.executable, "-m", "service.ray_serve", "--replicas", "2", "--port", str(port), "--local-cpus", "2",
-           "--object-store-mb", "100"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "service.ray_serve",
+        "--replicas",
+        "2",
+        "--port",
+        str(port),
+        "--local-cpus",
+        "2",
+        "--object-store-mb",
+        "100",
+    ]
     log = tempfile.TemporaryFile(mode="w+")
     proc = subprocess.Popen(cmd, cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
@@ -89,7 +100,10 @@ def test_same_answers_as_the_plain_service(ray_service, plain_service: UvicornPr
     assert ours.status_code == 200, ours.text
     assert ours.json() == httpx.post(f"{plain_service.url}/v2/models/flow/infer", json=infer).json()
     bad = httpx.post(f"{url}/act", json={"policy": "flow", "state": [1, 2, 3]}, timeout=30)
-    assert bad.status_code == 422 and bad.json() == httpx.post(f"{plain_service.url}/act", json={"policy": "flow", "state": [1, 2, 3]}).json()
+    assert (
+        bad.status_code == 422
+        and bad.json() == httpx.post(f"{plain_service.url}/act", json={"policy": "flow", "state": [1, 2, 3]}).json()
+    )
     with connect(f"ws://{url.removeprefix('http://')}/openpi/flow", open_timeout=30) as ws:
         assert unpack(ws.recv())["policy"] == "flow"
         ws.send(pack({"state": np.float32(STATES[1]), "seed": 7}))

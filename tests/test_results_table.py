@@ -19,6 +19,11 @@ def test_one_row_per_shipped_policy_the_default_first():
 
 
 def test_no_cards_is_a_one_line_error(tmp_path):
-    done = subprocess.run([sys.executable, "scripts/results_table.py", "--models-dir", str(tmp_path)], cwd=REPO,
-                          capture_output=True, text=True, timeout=60)
+    done = subprocess.run(
+        [sys.executable, "scripts/results_table.py", "--models-dir", str(tmp_path)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 2 and done.stderr.strip() == f"error: no policy cards (*.json) in {tmp_path}"

@@ -14,7 +14,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from training.checkpoint import load_card
+from policies.checkpoint import load_card
 from training.train import main
 
 REPO = Path(__file__).resolve().parent.parent
@@ -24,9 +24,30 @@ STEPS = 1500  # long enough that a signal sent after the first log record lands 
 
 def _args(out: Path, steps: int = STEPS, *extra: str) -> list[str]:
     # dropout and state noise stay on, so resuming must restore the RNG states too
-    return ["--policy", "flow", "--name", "run", "--out-dir", str(out), "--data", str(DATA), "--steps", str(steps),
-            "--batch-size", "32", "--log-every", "10", "--eval-every", "-1", "--threads", "1", "--no-progress",
-            "--arch", '{"hidden_dims": [32, 32]}', *extra]
+    return [
+        "--policy",
+        "flow",
+        "--name",
+        "run",
+        "--out-dir",
+        str(out),
+        "--data",
+        str(DATA),
+        "--steps",
+        str(steps),
+        "--batch-size",
+        "32",
+        "--log-every",
+        "10",
+        "--eval-every",
+        "-1",
+        "--threads",
+        "1",
+        "--no-progress",
+        "--arch",
+        '{"hidden_dims": [32, 32]}',
+        *extra,
+    ]
 
 
 def _snapshot(folder: Path) -> dict[str, bytes]:
@@ -39,8 +60,14 @@ def _weights(run_dir: Path) -> dict[str, torch.Tensor]:
 
 def _start(args: list[str]) -> subprocess.Popen:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    return subprocess.Popen([sys.executable, "-m", "training.train", *args], cwd=REPO, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "training.train", *args],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def _wait_for(proc: subprocess.Popen, ready, timeout: float = 120) -> None:

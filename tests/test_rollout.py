@@ -20,8 +20,8 @@ from pusht.rollout import (
 
 
 def _gym_pusht_env():
-    import gymnasium
     import gym_pusht  # noqa: F401
+    import gymnasium
 
     return gymnasium.make("gym_pusht/PushT-v0", obs_type="state", render_mode="rgb_array").unwrapped
 
@@ -169,7 +169,12 @@ def test_record_frames_of_the_first_episode():
         return frame[::10, ::10]
 
     summary = run_episodes(
-        chase_block, [100000, 100001], num_envs=2, max_steps=13, env_factory=_gym_pusht_env, record_frames=keep,
+        chase_block,
+        [100000, 100001],
+        num_envs=2,
+        max_steps=13,
+        env_factory=_gym_pusht_env,
+        record_frames=keep,
     )
     assert len(summary.frames) == 14  # the reset frame and one per step
     assert summary.frames[0].shape == (68, 68, 3)
@@ -195,8 +200,14 @@ def test_recorded_trajectories_replay_to_the_same_states():
 
 def test_progress_callback_counts_episodes():
     calls = []
-    run_episodes(chase_block, [1, 2, 3], num_envs=2, max_steps=12, env_factory=_gym_pusht_env,
-                 progress=lambda done, total: calls.append((done, total)))
+    run_episodes(
+        chase_block,
+        [1, 2, 3],
+        num_envs=2,
+        max_steps=12,
+        env_factory=_gym_pusht_env,
+        progress=lambda done, total: calls.append((done, total)),
+    )
     assert calls == [(1, 3), (2, 3), (3, 3)]
 
 
@@ -219,6 +230,7 @@ def test_bad_act_output_is_a_clear_error(bad_act, message):
 
 def test_the_chunk_length_comes_from_the_actions():
     """No action_horizon: each chunk runs whole, as long as the policy makes it (16 here); shorter chunks later fail."""
+
     def chase16(states, seeds):
         ramp = np.linspace(0.0, 1.0, 16, dtype=np.float32)[None, :, None]
         return states[:, None, 0:2] + ramp * (states[:, 2:4] - states[:, 0:2])[:, None, :]

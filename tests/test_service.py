@@ -1,6 +1,6 @@
 """The policy service: backends, seeds, batching, auth, metrics; in-process and against a real uvicorn.
 
-Random-weight `mse` and `flow` policies are built once per session into a temp dir (training.policies
+Random-weight `mse` and `flow` policies are built once per session into a temp dir (policies
 + checkpoint + export), so these tests need no trained models; the server tests repeat on the
 shipped models/. The batcher alone, bad requests, hardening, startup refusals, per-row seeds and
 fairness have their own tests/test_service_*.py.
@@ -75,7 +75,6 @@ def test_onnx_and_torch_backends_agree(test_models: Path) -> None:
     assert "onnx backend" in load_policy(test_models / "flow.json", backend="onnx").check_num_steps(3)
 
 
-
 def test_every_shape_comes_from_the_card(horizon16_models: Path) -> None:
     """Cards of 16-action chunks: /act, /policies, OIP v2, openpi metadata, the batcher and the viewer all use 16."""
     from fastapi.testclient import TestClient
@@ -100,23 +99,43 @@ def test_every_shape_comes_from_the_card(horizon16_models: Path) -> None:
         expected = flow.act(np.asarray(STATES, np.float32), noise=row_noise([7, 8, 9], 16, 2))
         np.testing.assert_allclose(np.asarray(many, np.float32), expected, atol=1e-4, rtol=0)
         whole = client.post("/act", json={"policy": "flow", "states": STATES, "seed": 5}).json()["actions"]
-        np.testing.assert_allclose(np.asarray(whole, np.float32), flow.act(np.asarray(STATES, np.float32), noise=chunk_noise(5, 3, 16, 2)),
-                                   atol=1e-4, rtol=0)
+        np.testing.assert_allclose(
+            np.asarray(whole, np.float32),
+            flow.act(np.asarray(STATES, np.float32), noise=chunk_noise(5, 3, 16, 2)),
+            atol=1e-4,
+            rtol=0,
+        )
         assert np.asarray(client.post("/act", json={"policy": "mse", "states": STATES}).json()["actions"]).shape == (3, 16, 2)
 
         meta = client.get("/v2/models/flow").json()
         assert {t["name"]: t["shape"] for t in meta["inputs"]} == {"state": [-1, 5], "noise": [-1, 16, 2], "seeds": [-1]}
         assert meta["outputs"] == [{"name": "actions", "datatype": "FP32", "shape": [-1, 16, 2]}]
         noise = np.random.default_rng(0).standard_normal((2, 16, 2)).astype(np.float32)
-        infer = client.post("/v2/models/flow/infer", json={"inputs": [
-            {"name": "state", "datatype": "FP32", "shape": [2, 5], "data": STATES[:2]},
-            {"name": "noise", "datatype": "FP32", "shape": [2, 16, 2], "data": noise.ravel().tolist()}]}).json()
+        infer = client.post(
+            "/v2/models/flow/infer",
+            json={
+                "inputs": [
+                    {"name": "state", "datatype": "FP32", "shape": [2, 5], "data": STATES[:2]},
+                    {"name": "noise", "datatype": "FP32", "shape": [2, 16, 2], "data": noise.ravel().tolist()},
+                ]
+            },
+        ).json()
         assert infer["outputs"][0]["shape"] == [2, 16, 2]
-        np.testing.assert_allclose(np.asarray(infer["outputs"][0]["data"], np.float32).reshape(2, 16, 2),
-                                   flow.act(np.asarray(STATES[:2], np.float32), noise=noise), atol=1e-4, rtol=0)
-        twelve = client.post("/v2/models/flow/infer", json={"inputs": [
-            {"name": "state", "datatype": "FP32", "shape": [1, 5], "data": STATE},
-            {"name": "noise", "datatype": "FP32", "shape": [1, 12, 2], "data": [0.0] * 24}]})
+        np.testing.assert_allclose(
+            np.asarray(infer["outputs"][0]["data"], np.float32).reshape(2, 16, 2),
+            flow.act(np.asarray(STATES[:2], np.float32), noise=noise),
+            atol=1e-4,
+            rtol=0,
+        )
+        twelve = client.post(
+            "/v2/models/flow/infer",
+            json={
+                "inputs": [
+                    {"name": "state", "datatype": "FP32", "shape": [1, 5], "data": STATE},
+                    {"name": "noise", "datatype": "FP32", "shape": [1, 12, 2], "data": [0.0] * 24},
+                ]
+            },
+        )
         assert twelve.status_code == 422 and "[B, 16, 2]" in twelve.json()["error"]
 
         with client.websocket_connect("/openpi/flow") as ws:
@@ -187,6 +206,7 @@ def test_seeds_are_deterministic_and_match_chunk_noise(server: UvicornProcess) -
 @pytest.mark.slow
 def test_concurrent_requests_are_batched_and_independent(server: UvicornProcess) -> None:
     """64 concurrent seeded requests over 32 connections: fewer model calls than requests, same answers as alone."""
+
     def batch_counts() -> tuple[float, float]:
         text = httpx.get(f"{server.url}/metrics").text
         values = {}
@@ -233,6 +253,7 @@ def test_32_connections_are_never_shed(test_models: Path) -> None:
     """Even with PUSHT_QUEUE_LIMIT=1, 32 concurrent full-size batch requests are all answered (the floor is 32 * max_states)."""
     env = {"PUSHT_MODELS_DIR": str(test_models), "PUSHT_MAX_STATES": "64", "PUSHT_QUEUE_LIMIT": "1"}
     with UvicornProcess(env) as srv:
+
         async def burst() -> list[int]:
             async with httpx.AsyncClient(base_url=srv.url, limits=httpx.Limits(max_connections=32), timeout=60) as client:
                 body = {"policy": "flow", "states": [STATE] * 64, "seed": 3}
@@ -267,8 +288,11 @@ def test_readyz_is_503_until_policies_load(test_models: Path) -> None:
     async def probe() -> tuple[httpx.Response, httpx.Response, httpx.Response]:
         # ASGITransport does not run the lifespan: exactly the state of a server still loading.
         async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://test") as client:
-            return (await client.get("/readyz"), await client.post("/act", json={"policy": "flow", "state": STATE}),
-                    await client.get("/healthz"))
+            return (
+                await client.get("/readyz"),
+                await client.post("/act", json={"policy": "flow", "state": STATE}),
+                await client.get("/healthz"),
+            )
 
     ready, acted, alive = asyncio.run(probe())
     assert ready.status_code == 503 and "loading" in ready.json()["detail"]

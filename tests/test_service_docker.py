@@ -54,9 +54,7 @@ def dockerignore_patterns(path: Path = REPO / ".dockerignore") -> list[str]:
 def is_ignored(rel: Path, patterns: list[str]) -> bool:
     """Whether the build-context path `rel` (or a folder above it) matches a .dockerignore pattern."""
     candidates = [rel, *rel.parents][:-1]  # the path and its parent folders, without "."
-    return any(
-        fnmatch.fnmatch(str(c), p) or fnmatch.fnmatch(str(c), p.replace("**/", "")) for c in candidates for p in patterns
-    )
+    return any(fnmatch.fnmatch(str(c), p) or fnmatch.fnmatch(str(c), p.replace("**/", "")) for c in candidates for p in patterns)
 
 
 def _copy(src: Path, target: Path, rel: Path, ignored: list[str]) -> None:

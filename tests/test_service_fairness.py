@@ -87,7 +87,9 @@ def test_queue_limits_count_rows_times_network_evaluations(test_models: Path) ->
 async def _send(port: int, body: dict) -> tuple[asyncio.StreamReader, asyncio.StreamWriter]:
     reader, writer = await asyncio.open_connection("127.0.0.1", port)
     data = json.dumps(body).encode()
-    writer.write(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: %d\r\n\r\n%s" % (len(data), data))
+    writer.write(
+        b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: %d\r\n\r\n%s" % (len(data), data)
+    )
     await writer.drain()
     return reader, writer
 
@@ -103,6 +105,7 @@ async def _answer(reader: asyncio.StreamReader) -> int:
 def test_small_request_overtakes_queued_bulk_batches_on_a_real_server() -> None:
     """Eight 1,024-row flow requests queued first, then a 1-row one: its answer comes before every bulk answer."""
     with UvicornProcess({"PUSHT_MODELS_DIR": str(_shipped())}) as srv:
+
         async def scenario() -> list[str]:
             order: list[str] = []
             # At 2 network evaluations a row the shipped flow fits 320 rows in a call: a smaller bulk request could be
@@ -158,6 +161,7 @@ def test_torch_queue_limit_counts_num_steps(chooser_models: Path) -> None:
     # the chooser: 64 candidates of 10 steps at 4 stretches, so the cost of a step count is large
     env = {"PUSHT_MODELS_DIR": str(chooser_models), "PUSHT_BACKEND": "torch", "PUSHT_MAX_STATES": "4", "PUSHT_QUEUE_LIMIT": "1"}
     with UvicornProcess(env) as srv:  # limit: 32 requests x 4 rows x 10 steps = 1,280 cost units
+
         def burst(num_steps: int) -> list[tuple[int, bytes]]:
             body = json.dumps({"policy": "flow", "states": [STATE] * 4, "seed": 1, "num_steps": num_steps}).encode()
             return asyncio.run(raw_burst(srv.port, [body] * 32, connections=32))

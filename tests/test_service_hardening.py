@@ -21,7 +21,12 @@ import pytest
 from tests.service_fixtures import UvicornProcess
 
 STATE = [120.0, 300.0, 256.0, 250.0, 1.0]
-FAST_TIMEOUTS = {"PUSHT_HEADER_TIMEOUT_S": "1", "PUSHT_KEEP_ALIVE_S": "1", "PUSHT_BODY_TIMEOUT_S": "2", "PUSHT_SHUTDOWN_TIMEOUT_S": "2"}
+FAST_TIMEOUTS = {
+    "PUSHT_HEADER_TIMEOUT_S": "1",
+    "PUSHT_KEEP_ALIVE_S": "1",
+    "PUSHT_BODY_TIMEOUT_S": "2",
+    "PUSHT_SHUTDOWN_TIMEOUT_S": "2",
+}
 
 
 @pytest.fixture(scope="module", params=["uvicorn", "service"], ids=["plain-uvicorn", "python-m-service"])
@@ -76,6 +81,7 @@ def test_huge_headers_are_refused_with_bounded_memory(server: UvicornProcess) ->
 def test_idle_and_slow_connections_are_closed(test_models: Path) -> None:
     """python -m service closes connections that send nothing, trickle their headers, or idle after a response."""
     with UvicornProcess({"PUSHT_MODELS_DIR": str(test_models), **FAST_TIMEOUTS}, entry="service") as srv:
+
         async def scenario() -> list[str]:
             idle = [await asyncio.open_connection("127.0.0.1", srv.port) for _ in range(50)]
             slow_reader, slow_writer = await asyncio.open_connection("127.0.0.1", srv.port)
@@ -132,6 +138,7 @@ def test_connections_beyond_the_cap_get_a_fast_503(test_models: Path) -> None:
 @pytest.mark.slow
 def test_connection_cap_fits_the_file_descriptor_limit(test_models: Path) -> None:
     """With `ulimit -n 256`, PUSHT_MAX_CONNECTIONS (1000) is lowered so sockets cannot exhaust the descriptors."""
+
     def low_fd_limit() -> None:
         resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
 
@@ -146,7 +153,7 @@ def test_shutdown_is_bounded_with_a_stuck_request(entry: str, test_models: Path)
     """SIGTERM while a client is stuck halfway through its body: the server still exits within seconds."""
     with UvicornProcess({"PUSHT_MODELS_DIR": str(test_models), **FAST_TIMEOUTS}, entry=entry) as srv:
         with socket.create_connection(("127.0.0.1", srv.port)) as sock:
-            sock.sendall(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 1000\r\n\r\n{\"po")
+            sock.sendall(b'POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 1000\r\n\r\n{"po')
             time.sleep(0.5)
             srv.proc.send_signal(signal.SIGTERM)
             srv.proc.wait(timeout=20)  # raises TimeoutExpired if shutdown hangs

@@ -71,8 +71,14 @@ def test_requests_with_seeds_still_merge_into_shared_model_calls(server: Uvicorn
     # two rows a request, unless two such requests overflow one call's cost budget (the shipped flow's 16 candidates)
     unit = next(p for p in httpx.get(f"{server.url}/policies").json()["policies"] if p["name"] == "flow")["network_evaluations"]
     rows = 2 if 2 * 2 * unit <= Settings().batch_max_cost else 1
-    bodies = [{"policy": "flow", "states": [STATES[(i + r) % 6] for r in range(rows)], "seeds": [1000 * (r + 1) + i for r in range(rows)]}
-              for i in range(n)]
+    bodies = [
+        {
+            "policy": "flow",
+            "states": [STATES[(i + r) % 6] for r in range(rows)],
+            "seeds": [1000 * (r + 1) + i for r in range(rows)],
+        }
+        for i in range(n)
+    ]
     alone = [act(server.url, **body).json()["actions"] for body in bodies]
     calls0, reqs0 = calls_and_requests()
     together = asyncio.run(raw_burst(server.port, [json.dumps(b).encode() for b in bodies], connections=32))
@@ -122,7 +128,9 @@ def test_a_request_split_over_model_calls_keeps_its_noise(test_models: Path) -> 
         # 3 flow rows' budget, below the padded group of 4 rows a call may always take: 4 rows a call
         batcher = Batcher(policy, max_cost=30, observe=lambda name, rows, reqs: calls.append(rows))
         try:
-            return await asyncio.gather(batcher.submit(states, seed=5), batcher.submit(states, seeds=seeds), batcher.submit(states))
+            return await asyncio.gather(
+                batcher.submit(states, seed=5), batcher.submit(states, seeds=seeds), batcher.submit(states)
+            )
         finally:
             batcher.close()
 

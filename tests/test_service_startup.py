@@ -42,7 +42,12 @@ def _nan_flow(models: Path) -> None:
 def _start(entry: str, env: dict[str, str], timeout: float = 90) -> subprocess.CompletedProcess:
     """Start the server as users do and wait for it to exit (it must: every case here is refused)."""
     return subprocess.run(
-        server_command(entry, free_port()), cwd=REPO, env={**os.environ, **env}, capture_output=True, text=True, timeout=timeout,
+        server_command(entry, free_port()),
+        cwd=REPO,
+        env={**os.environ, **env},
+        capture_output=True,
+        text=True,
+        timeout=timeout,
     )
 
 
@@ -112,8 +117,16 @@ def _break(kind: str, models: Path) -> Path:
 
 
 CARD_CASES = [
-    "card {}", "card null", "card a list", "onnx a string", "nested 100k deep", "card a FIFO", "card a directory",
-    "onnx a FIFO", "stray JSON", "NaN weights",
+    "card {}",
+    "card null",
+    "card a list",
+    "onnx a string",
+    "nested 100k deep",
+    "card a FIFO",
+    "card a directory",
+    "onnx a FIFO",
+    "stray JSON",
+    "NaN weights",
 ]
 
 

@@ -139,8 +139,11 @@ def test_bad_model_files_stop_startup_naming_the_file(kind: str, test_models: Pa
     backend = "torch" if "torch" in kind else "onnx"
     proc = subprocess.run(
         [sys.executable, "-m", "uvicorn", "service.app:app", "--host", "127.0.0.1", "--port", "0"],
-        cwd=REPO, env={**os.environ, "PUSHT_MODELS_DIR": str(models_dir), "PUSHT_BACKEND": backend},
-        capture_output=True, text=True, timeout=60,
+        cwd=REPO,
+        env={**os.environ, "PUSHT_MODELS_DIR": str(models_dir), "PUSHT_BACKEND": backend},
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert proc.returncode != 0
     assert str(bad) in proc.stderr, proc.stderr[-2000:]
@@ -219,20 +222,37 @@ def test_the_single_state_shortcut_accepts_exactly_what_the_request_model_accept
 
     model = act_request_model(64)
     texts = [json.dumps(body) for _, body in BAD_BODIES] + [
-        '{"policy": "flow", "state": [1, 2, 3, 4, 5]}', '{"policy":"flow","state":[1.5,2,3,4,-10000.0],"seed":0}',
+        '{"policy": "flow", "state": [1, 2, 3, 4, 5]}',
+        '{"policy":"flow","state":[1.5,2,3,4,-10000.0],"seed":0}',
         '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 9223372036854775807, "num_steps": 1}',
-        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 9223372036854775808}', '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": -1}',
-        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 18446744073709551616}', '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 1.0}',
-        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": true}', '{"policy": "f", "state": [1, 2, 3, 4, 5], "num_steps": 0}',
-        '{"policy": "f", "state": [1, 2, 3, 4, 5], "num_steps": 100000}', '{"policy": "f", "state": [1, 2, 3, 4, 5], "num_steps": null}',
-        '{"policy": "f", "state": [1, 2, 3, 4, 10000.0001]}', '{"policy": "f", "state": [1, 2, 3, 4, 1e999]}',
-        '{"policy": "f", "state": [1, 2, 3, 4, NaN]}', '{"policy": "f", "state": [1, 2, 3, 4, Infinity]}',
-        '{"policy": "f", "state": [1, 2, 3, 4, 5], "state": null}', '{"policy": "f", "state": null, "state": [1, 2, 3, 4, 5]}',
-        '{"policy": "", "state": [1, 2, 3, 4, 5]}', '{"policy": "' + "p" * 200 + '", "state": [1, 2, 3, 4, 5]}',
-        '{"policy": "' + "p" * 201 + '", "state": [1, 2, 3, 4, 5]}', '{"policy": "\\u00e9\\ud800", "state": [1, 2, 3, 4, 5]}',
-        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seeds": [1]}', '{"policy": "f", "state": [1, 2, 3, 4, 5], "states": null}',
-        '\ufeff{"policy": "f", "state": [1, 2, 3, 4, 5]}', ' {"policy": "f", "state": [1, 2, 3, 4, 5]}\n', '[1, 2]', '"x"', '',
-        '{"policy": "f", "state": [1, 2, 3, 4, 5]} x', '{"policy": "f", "state": [01, 2, 3, 4, 5]}', '{"policy": "f", "state": [-0.0, 2e3, 3E-2, 4, 5]}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 9223372036854775808}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": -1}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 18446744073709551616}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": 1.0}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seed": true}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "num_steps": 0}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "num_steps": 100000}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "num_steps": null}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 10000.0001]}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 1e999]}',
+        '{"policy": "f", "state": [1, 2, 3, 4, NaN]}',
+        '{"policy": "f", "state": [1, 2, 3, 4, Infinity]}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "state": null}',
+        '{"policy": "f", "state": null, "state": [1, 2, 3, 4, 5]}',
+        '{"policy": "", "state": [1, 2, 3, 4, 5]}',
+        '{"policy": "' + "p" * 200 + '", "state": [1, 2, 3, 4, 5]}',
+        '{"policy": "' + "p" * 201 + '", "state": [1, 2, 3, 4, 5]}',
+        '{"policy": "\\u00e9\\ud800", "state": [1, 2, 3, 4, 5]}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "seeds": [1]}',
+        '{"policy": "f", "state": [1, 2, 3, 4, 5], "states": null}',
+        '\ufeff{"policy": "f", "state": [1, 2, 3, 4, 5]}',
+        ' {"policy": "f", "state": [1, 2, 3, 4, 5]}\n',
+        "[1, 2]",
+        '"x"',
+        "",
+        '{"policy": "f", "state": [1, 2, 3, 4, 5]} x',
+        '{"policy": "f", "state": [01, 2, 3, 4, 5]}',
+        '{"policy": "f", "state": [-0.0, 2e3, 3E-2, 4, 5]}',
     ]
     shortcut_taken = 0
     for text in texts:

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from training.checkpoint import load_acting_policy, load_checkpoint
+from policies.checkpoint import load_acting_policy, load_checkpoint
 from training.config import TrainConfig, parse_config
 from training.train import main, state_noise_std
 
@@ -32,7 +32,15 @@ DATA = _dataset()
 
 def _train_args(tmp_path: Path, name: str, *extra: str) -> list[str]:
     return [
-        "--name", name, "--out-dir", str(tmp_path), "--data", str(DATA), "--threads", "1", "--no-progress",
+        "--name",
+        name,
+        "--out-dir",
+        str(tmp_path),
+        "--data",
+        str(DATA),
+        "--threads",
+        "1",
+        "--no-progress",
         *extra,
     ]
 
@@ -46,8 +54,22 @@ def _records(run_dir: Path, kind: str) -> list[dict]:
 @pytest.mark.parametrize("policy", ["mse", "flow"])
 def test_smoke_training_on_real_data(tmp_path, policy):
     args = _train_args(
-        tmp_path, policy, "--policy", policy, "--steps", "300", "--batch-size", "64", "--log-every", "50",
-        "--eval-every", "150", "--eval-episodes", "3", "--eval-max-steps", "24",
+        tmp_path,
+        policy,
+        "--policy",
+        policy,
+        "--steps",
+        "300",
+        "--batch-size",
+        "64",
+        "--log-every",
+        "50",
+        "--eval-every",
+        "150",
+        "--eval-episodes",
+        "3",
+        "--eval-max-steps",
+        "24",
     )
     assert main(args) == 0
     run_dir = tmp_path / policy
@@ -86,12 +108,27 @@ def test_smoke_training_on_real_data(tmp_path, policy):
 @pytest.mark.slow
 def test_two_process_ddp_matches_one_process(tmp_path):
     """Without dropout or noise, 2 ranks with half batches must follow the 1-process trajectory."""
-    common = ["--policy", "mse", "--steps", "30", "--batch-size", "32", "--log-every", "10", "--eval-every", "-1",
-              "--dropout", "0", "--state-noise-start", "0"]
+    common = [
+        "--policy",
+        "mse",
+        "--steps",
+        "30",
+        "--batch-size",
+        "32",
+        "--log-every",
+        "10",
+        "--eval-every",
+        "-1",
+        "--dropout",
+        "0",
+        "--state-noise-start",
+        "0",
+    ]
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "training.train"]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    done = subprocess.run(torchrun + _train_args(tmp_path, "ddp", *common), cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=300)
+    done = subprocess.run(
+        torchrun + _train_args(tmp_path, "ddp", *common), cwd=REPO, env=env, capture_output=True, text=True, timeout=300
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert "world size: 2" in done.stderr
     assert main(_train_args(tmp_path, "single", *common)) == 0
@@ -116,7 +153,9 @@ def test_state_noise_schedules(schedule, expected):
     cfg = TrainConfig(policy="mse", state_noise_schedule=schedule)
     got = [state_noise_std(cfg, p) for p in (0.0, 0.5, 1.0)]
     assert got == pytest.approx(expected, abs=1e-12)
-    assert state_noise_std(cfg, 0.25) == pytest.approx({"linear": 0.0375, "cosine": 0.025 * (1 + math.cos(math.pi / 4)), "constant": 0.05}[schedule])
+    assert state_noise_std(cfg, 0.25) == pytest.approx(
+        {"linear": 0.0375, "cosine": 0.025 * (1 + math.cos(math.pi / 4)), "constant": 0.05}[schedule]
+    )
 
 
 def test_command_line_reproduces_the_config():
@@ -124,8 +163,22 @@ def test_command_line_reproduces_the_config():
 
     from training.config import command_line
 
-    argv = ["--policy", "flow", "--name", "x", "--steps", "1234", "--pad-episode-end", "--no-progress",
-            "--arch", '{"action_frame": "agent", "dropout": 0.0}', "--extra-data", "a.zarr,b.zarr", "--lr", "1e-4"]
+    argv = [
+        "--policy",
+        "flow",
+        "--name",
+        "x",
+        "--steps",
+        "1234",
+        "--pad-episode-end",
+        "--no-progress",
+        "--arch",
+        '{"action_frame": "agent", "dropout": 0.0}',
+        "--extra-data",
+        "a.zarr,b.zarr",
+        "--lr",
+        "1e-4",
+    ]
     config = parse_config(argv).to_dict()
     command = command_line(config)
     assert command.startswith("python -m training.train --policy flow --name x ")
@@ -137,7 +190,13 @@ def test_defaults_are_the_published_recipe():
     cfg = parse_config(["--policy", "flow"])
     assert (cfg.lr, cfg.weight_decay, cfg.batch_size, cfg.steps, cfg.dropout) == (3e-4, 1e-4, 128, 200_000, 0.1)
     assert (cfg.state_noise_start, cfg.state_noise_end, cfg.state_noise_schedule) == (0.05, 0.0, "linear")
-    assert (cfg.eval_every, cfg.eval_episodes, cfg.eval_seed, cfg.eval_max_steps, cfg.action_horizon) == (10_000, 100, 100_000, 300, 12)
+    assert (cfg.eval_every, cfg.eval_episodes, cfg.eval_seed, cfg.eval_max_steps, cfg.action_horizon) == (
+        10_000,
+        100,
+        100_000,
+        300,
+        12,
+    )
     assert cfg.data == "data/pusht_lowdim.zarr"
 
 

@@ -31,8 +31,12 @@ def test_repository_entries_pass_tritons_schema_and_match_the_graph(repo: Path, 
     feeds = {"state": np.array([[222.0, 97.0, 222.0, 222.0, 0.8]] * 3, dtype=np.float32)}
     if name == "flow":
         feeds["noise"] = rng.standard_normal((3, 12, 2)).astype(np.float32)
-    ours = ort.InferenceSession(str(repo / name / "1" / "model.onnx"), providers=["CPUExecutionProvider"]).run(["actions"], feeds)[0]
-    shipped = ort.InferenceSession(str(REPO / "models" / f"{name}.onnx"), providers=["CPUExecutionProvider"]).run(["actions"], feeds)[0]
+    ours = ort.InferenceSession(str(repo / name / "1" / "model.onnx"), providers=["CPUExecutionProvider"]).run(
+        ["actions"], feeds
+    )[0]
+    shipped = ort.InferenceSession(str(REPO / "models" / f"{name}.onnx"), providers=["CPUExecutionProvider"]).run(
+        ["actions"], feeds
+    )[0]
     np.testing.assert_allclose(ours, shipped, atol=1e-4)
 
 
@@ -54,7 +58,7 @@ def test_a_config_that_disagrees_with_its_graph_or_the_schema_is_refused(repo: P
 
 def test_config_shapes_come_from_the_card() -> None:
     """A flow of 16-action chunks (and any state or action width its card names) gets those dims, not 12."""
-    from acting.card import Card
+    from policies.card import Card
     from training.triton_repo import config_text
 
     arch = {"horizon": 16, "state_dim": 7, "action_dim": 3}

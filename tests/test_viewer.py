@@ -10,12 +10,12 @@ import httpx
 import numpy as np
 import pytest
 import zarr
+from service_fixtures import SHIPPED_MODELS, UvicornProcess, shipped_models_available
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 from acting import load_policy
 from pusht import PushTEnv
-from service_fixtures import SHIPPED_MODELS, UvicornProcess, shipped_models_available
 from training.data import load_replay
 from training.evaluate import evaluate_policy
 
@@ -65,8 +65,11 @@ def play(ws, policy: str | None, seed: int, fps: float = 200) -> list[dict]:
     return states
 
 
-@pytest.mark.parametrize("which, policy, seeds", [("server", "flow", (200000, 200003)), ("server", "mse", (200001,)),
-                                                  ("chooser_server", "flow", (200000,))], ids=["flow", "mse", "chooser"])
+@pytest.mark.parametrize(
+    "which, policy, seeds",
+    [("server", "flow", (200000, 200003)), ("server", "mse", (200001,)), ("chooser_server", "flow", (200000,))],
+    ids=["flow", "mse", "chooser"],
+)
 def test_viewer_episode_scores_equal_training_evaluate(which, policy, seeds, request):
     server = request.getfixturevalue(which)
     in_process = load_policy(server.models_dir / f"{policy}.onnx")
@@ -79,7 +82,11 @@ def test_viewer_episode_scores_equal_training_evaluate(which, policy, seeds, req
             elapsed = time.perf_counter() - started
             reference = evaluate_policy(in_process, episodes=1, seed=seed).episodes[0]
             last = states[-1]
-            assert (last["maxReward"], last["success"], last["step"]) == (reference.max_reward, reference.success, reference.length)
+            assert (last["maxReward"], last["success"], last["step"]) == (
+                reference.max_reward,
+                reference.success,
+                reference.length,
+            )
             assert last["coverage"] == reference.final_coverage
             assert [s["step"] for s in states] == list(range(len(states)))
             assert elapsed >= (last["step"] - 1) / 200  # paced at the asked rate, not faster

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from service_fixtures import SHIPPED_MODELS, UvicornProcess, shipped_models_available
 
 from acting import load_policy
-from service_fixtures import SHIPPED_MODELS, UvicornProcess, shipped_models_available
 from training.data import load_replay
 from training.evaluate import evaluate_policy
 
@@ -20,8 +20,10 @@ CHROMEDRIVER = shutil.which("chromedriver") or "/usr/bin/chromedriver"
 webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is in the test extra")
 pytestmark = [
     pytest.mark.skipif(not shipped_models_available(), reason="needs the shipped models/flow and models/mse"),
-    pytest.mark.skipif(not (Path(CHROMIUM).is_file() and Path(CHROMEDRIVER).is_file()),
-                       reason="needs Debian's chromium and chromium-driver (.ci/run installs them)"),
+    pytest.mark.skipif(
+        not (Path(CHROMIUM).is_file() and Path(CHROMEDRIVER).is_file()),
+        reason="needs Debian's chromium and chromium-driver (.ci/run installs them)",
+    ),
 ]
 KEY = "browser-test-key"
 
@@ -45,7 +47,9 @@ def wait_for(driver, script: str, timeout: float = 30.0):
         if value:
             return value
         time.sleep(0.05)
-    raise TimeoutError(f"{script} still falsy after {timeout} s; page said {driver.execute_script('return window.pushtViewer && window.pushtViewer.lastError()')}")
+    raise TimeoutError(
+        f"{script} still falsy after {timeout} s; page said {driver.execute_script('return window.pushtViewer && window.pushtViewer.lastError()')}"
+    )
 
 
 @pytest.fixture(scope="module")
@@ -82,8 +86,13 @@ def test_browser_plays_the_episode_training_evaluate_scores(server, driver):
     driver.get(f"{server.url}/viewer?policy=flow&seed={seed}&autoplay=1&fps=200")
     status = wait_for(driver, "window.pushtViewer.status().done && window.pushtViewer.status()")
     reference = evaluate_policy(load_policy(SHIPPED_MODELS / "flow.onnx"), episodes=1, seed=seed).episodes[0]
-    assert status == {"step": reference.length, "coverage": reference.final_coverage, "maxReward": reference.max_reward,
-                      "done": True, "success": reference.success}
+    assert status == {
+        "step": reference.length,
+        "coverage": reference.final_coverage,
+        "maxReward": reference.max_reward,
+        "done": True,
+        "success": reference.success,
+    }
     # the canvas shows the goal (light green) and the block (slate grey)
     counts = driver.execute_script("""
         const d = document.getElementById('board').getContext('2d').getImageData(0, 0, 512, 512).data;

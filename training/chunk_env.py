@@ -128,4 +128,3 @@ class ChunkVectorEnv:
         self.elapsed[i] = 0
         self._reward[i] = min(info["coverage"] / SUCCESS_COVERAGE, 1.0)
         self._max_reward[i] = self._reward[i]
-

@@ -50,8 +50,13 @@ def build_parser(cls: type, prog: str, description: str) -> argparse.ArgumentPar
     return parser
 
 
-def command_line(cls: type, prog: str, config: dict[str, Any], always: tuple[str, ...] = ("name",),
-                 skip: tuple[str, ...] = ("progress", "resume", "overwrite")) -> str:
+def command_line(
+    cls: type,
+    prog: str,
+    config: dict[str, Any],
+    always: tuple[str, ...] = ("name",),
+    skip: tuple[str, ...] = ("progress", "resume", "overwrite"),
+) -> str:
     """The `prog` command that reproduces `config`: the flags whose values differ from the defaults (and `always`), none of `skip`."""
     parts = [prog]
     for f in fields(cls):

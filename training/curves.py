@@ -22,8 +22,9 @@ def plot_learning_curve(records: list[dict[str, Any]], path: str | Path) -> None
     if evals:
         steps = [r["step"] for r in evals]
         ax_eval.plot(steps, [r["mean_max_reward"] for r in evals], "o-", label="mean max reward")
-        ax_eval.fill_between(steps, [r["mean_max_reward_ci95"][0] for r in evals],
-                             [r["mean_max_reward_ci95"][1] for r in evals], alpha=0.2)
+        ax_eval.fill_between(
+            steps, [r["mean_max_reward_ci95"][0] for r in evals], [r["mean_max_reward_ci95"][1] for r in evals], alpha=0.2
+        )
         ax_eval.plot(steps, [r["success_rate"] for r in evals], "s-", label="success rate")
         ax_eval.legend(loc="upper left")
         first = evals[0]["seeds"]  # [first, last] in newer logs, every seed in older ones

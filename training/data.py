@@ -5,7 +5,7 @@
     data = training_set("data/pusht_lowdim.zarr")  # what a training loop needs, in one call
 
 Window t pairs the state at frame t with the actions of frames t..t+11 of the same episode. Nothing
-here normalizes or changes frames: the policy does both (`policy.normalizer`, training.normalization).
+here normalizes or changes frames: the policy does both (`policy.normalizer`, policies.normalization).
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ import numpy as np
 import torch
 import zarr
 
+from policies.normalization import Normalizer
+from policies.pace import Pace
 from pusht.spec import ACTION_DIM, DEFAULT_HORIZON, STATE_DIM
-from training.normalization import Normalizer
-from training.pace import Pace
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATASET = REPO_ROOT / "data" / "pusht_lowdim.zarr"
@@ -97,8 +97,9 @@ def save_replay(path: str | Path, replay: Replay, attrs: dict[str, Any] | None =
     root.attrs.update(attrs or {})
 
 
-def make_windows(replay: Replay, horizon: int = DEFAULT_HORIZON, pad_end: bool = False,
-                 pace: Pace | float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def make_windows(
+    replay: Replay, horizon: int = DEFAULT_HORIZON, pad_end: bool = False, pace: Pace | float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
     """States [W, 5] and action chunks [W, horizon, 2]: the state at t and actions t..t+horizon-1 of one episode.
 
     With `pad_end`, every frame starts a window, and chunks that would run past their episode's end
@@ -112,8 +113,9 @@ def make_windows(replay: Replay, horizon: int = DEFAULT_HORIZON, pad_end: bool =
     return states, chunks_at(replay, starts, pace.speeds(states), horizon, pad_end)
 
 
-def chunks_at(replay: Replay, starts: np.ndarray, speeds: np.ndarray, horizon: int = DEFAULT_HORIZON,
-              pad_end: bool = False) -> np.ndarray:
+def chunks_at(
+    replay: Replay, starts: np.ndarray, speeds: np.ndarray, horizon: int = DEFAULT_HORIZON, pad_end: bool = False
+) -> np.ndarray:
     """Action chunks [W, horizon, 2] starting at frames `starts`, action k the demonstration's at frame t + speeds[w] k
     (interpolated; with `pad_end`, the episode's last action past its end)."""
     positions = starts[:, None] + np.asarray(speeds, dtype=np.float64)[:, None] * np.arange(horizon)[None, :]
@@ -182,24 +184,40 @@ class TrainingSet:
         return torch.multinomial(self.weights, count, replacement=True, generator=generator)
 
 
-def training_set(data: str | Path, horizon: int = DEFAULT_HORIZON, pad_end: bool = False, extra_data: tuple[str | Path, ...] = (),
-                 human_weight: float = 1.0, policy_step_weight: float = 1.0, extra_stride: int = 1, pace: Pace | float = 1.0,
-                 pace_copies: int = 0, seed: int = 0) -> TrainingSet:
-    """The demonstrations' windows plus those of `extra_data`, in env units.
+@dataclass(frozen=True)
+class ExtraData:
+    """Stores trained on beside the demonstrations (e.g. the viewer's saved corrections). Windows whose first action a human
+    gave (data/human) weigh `human_weight`, the others of such stores `policy_step_weight`. With `stride` k, windows start
+    only every k-th frame of an episode (a policy's decision points when k is its chunk length)."""
 
-    Extra windows whose first action a human gave (data/human) weigh `human_weight`, the others of such stores `policy_step_weight`.
-    With `extra_stride` k, extra windows start only every k-th frame of an episode (a policy's decision points when k is its chunk length).
-    `pace`: how fast the chunks play the demonstrations (`make_windows`, training.pace). With `pace_copies` K, each
+    paths: tuple[str | Path, ...] = ()
+    human_weight: float = 1.0
+    policy_step_weight: float = 1.0
+    stride: int = 1
+
+
+def training_set(
+    data: str | Path,
+    horizon: int = DEFAULT_HORIZON,
+    pad_end: bool = False,
+    extra: ExtraData = ExtraData(),
+    pace: Pace | float = 1.0,
+    pace_copies: int = 0,
+    seed: int = 0,
+) -> TrainingSet:
+    """The demonstrations' windows plus those of the `extra` stores, in env units.
+
+    `pace`: how fast the chunks play the demonstrations (`make_windows`, policies.pace). With `pace_copies` K, each
     demonstration window appears K times instead, at paces drawn uniformly between 1 and `pace.fastest` (seeded by
     `seed`), and the set carries them (`paces`) for a policy that takes the pace as an input."""
-    if extra_stride < 1:
-        raise ValueError(f"extra_stride must be >= 1, got {extra_stride}")
+    if extra.stride < 1:
+        raise ValueError(f"extra_stride must be >= 1, got {extra.stride}")
     pace = Pace.of(pace)
     replay = load_replay(data)
     frames = window_frames(replay, horizon, pad_end, pace.fastest)
     paces = None
     if pace_copies:
-        if extra_data:
+        if extra.paths:
             raise ValueError("a pace input trains on the demonstrations alone; drop the extra data")
         frames = np.repeat(frames, pace_copies)
         paces = np.random.default_rng(seed).uniform(1.0, pace.fastest, len(frames))
@@ -208,17 +226,21 @@ def training_set(data: str | Path, horizon: int = DEFAULT_HORIZON, pad_end: bool
     prev_states = previous_states(replay, frames)
     demo_windows = len(states)
     weights = [np.ones(demo_windows)]
-    for extra in extra_data:
-        extra_replay = load_replay(extra)
+    for path in extra.paths:
+        extra_replay = load_replay(path)
         extra_states, extra_chunks = make_windows(extra_replay, horizon, pad_end, pace)
         frames = window_frames(extra_replay, horizon, pad_end, pace.fastest)
-        keep = _frame_in_episode(frames, extra_replay.episode_ends) % extra_stride == 0
+        keep = _frame_in_episode(frames, extra_replay.episode_ends) % extra.stride == 0
         extra_states, extra_chunks, frames = extra_states[keep], extra_chunks[keep], frames[keep]
         states, chunks = np.concatenate([states, extra_states]), np.concatenate([chunks, extra_chunks])
         prev_states = np.concatenate([prev_states, previous_states(extra_replay, frames)])
-        labels = human_labels(extra, len(extra_replay.states))
+        labels = human_labels(path, len(extra_replay.states))
         starts_human = labels[frames] if labels is not None else None
-        weights.append(np.ones(len(extra_states)) if starts_human is None else np.where(starts_human, human_weight, policy_step_weight))
+        weights.append(
+            np.ones(len(extra_states))
+            if starts_human is None
+            else np.where(starts_human, extra.human_weight, extra.policy_step_weight)
+        )
     weights = np.concatenate(weights)
     return TrainingSet(
         states=torch.as_tensor(np.asarray(states, dtype=np.float32)),
@@ -266,4 +288,3 @@ def _read_array(root: Any, path: Path, name: str) -> np.ndarray:
         return np.asarray(array[...])
     except Exception as exc:  # a corrupt chunk surfaces as a codec or OS error
         raise DatasetError(f"{path}: cannot read {name}: {exc}") from None
-

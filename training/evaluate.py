@@ -19,13 +19,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from acting import Policy, load_policy, read_card, rollout_act
-from pusht.gif import FPS, annotated_frame, write_gif as _write_gif
+from pusht.gif import FPS, annotated_frame
+from pusht.gif import write_gif as _write_gif
 from pusht.rollout import RolloutSummary, card_id, check_output_path, episode_seeds, run_episodes, write_episode_records
 from pusht.spec import HELD_OUT_SEED, TRAIN_EVAL_SEED
 from training.cli import HelpFormatter
@@ -35,26 +37,7 @@ ENVS = ("pusht", "gym-pusht")
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: evaluate a model and print one JSON line."""
-    parser = argparse.ArgumentParser(
-        prog="python -m training.evaluate",
-        description="Roll out a policy in Push-T (batched, lockstep) and print one JSON line with its scores.",
-        formatter_class=HelpFormatter,
-    )
-    parser.add_argument("--model", required=True, help="an ONNX file (models/flow.onnx, card NAME.json beside it) or a checkpoint stem (models/flow)")
-    parser.add_argument("--episodes", type=int, default=100, help="number of episodes (seeds seed..seed+episodes-1)")
-    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="first episode seed; each episode's noise comes from its own seed")
-    parser.add_argument("--num-envs", type=int, default=100, help="environments run in lockstep (one policy call per decision for all); scores do not depend on it")
-    parser.add_argument("--env", choices=ENVS, default="pusht", help="our env (pusht) or the reference gym-pusht 0.1.8")
-    parser.add_argument("--action-horizon", type=int, default=None, help="actions of each chunk executed open loop (default: the card's horizon, the whole chunk)")
-    parser.add_argument("--num-steps", type=int, default=None,
-                        help="flow: Euler steps of sampling (default: the card's count: 10, or a distilled flow's own; an ONNX file has its count fixed)")
-    parser.add_argument("--noise-scale", type=float, default=1.0, help="flow: multiply the start noise by this (on top of the model's own noise_scale)")
-    parser.add_argument("--fixed-noise", type=int, default=None, metavar="SEED",
-                        help="flow: every decision starts from the noise of this one seed (the policy as a deterministic map)")
-    parser.add_argument("--max-steps", type=int, default=300, help="episode step limit")
-    parser.add_argument("--out", default=None, metavar="FILE", help="write one JSON line per episode (seed, max_reward, success, length, policy, card) to FILE")
-    parser.add_argument("--gif", default=None, metavar="FILE", help="write the first episode as an animated GIF (real speed, step/coverage/success caption) to FILE")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    parser = _parser()
     args = parser.parse_args(argv)
 
     try:
@@ -87,6 +70,76 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _parser() -> argparse.ArgumentParser:
+    """The command line."""
+    parser = argparse.ArgumentParser(
+        prog="python -m training.evaluate",
+        description="Roll out a policy in Push-T (batched, lockstep) and print one JSON line with its scores.",
+        formatter_class=HelpFormatter,
+    )
+    parser.add_argument(
+        "--model",
+        required=True,
+        help="an ONNX file (models/flow.onnx, card NAME.json beside it) or a checkpoint stem (models/flow)",
+    )
+    parser.add_argument("--episodes", type=int, default=100, help="number of episodes (seeds seed..seed+episodes-1)")
+    parser.add_argument(
+        "--seed", type=int, default=HELD_OUT_SEED, help="first episode seed; each episode's noise comes from its own seed"
+    )
+    parser.add_argument(
+        "--num-envs",
+        type=int,
+        default=100,
+        help="environments run in lockstep (one policy call per decision for all); scores do not depend on it",
+    )
+    parser.add_argument("--env", choices=ENVS, default="pusht", help="our env (pusht) or the reference gym-pusht 0.1.8")
+    parser.add_argument(
+        "--action-horizon",
+        type=int,
+        default=None,
+        help="actions of each chunk executed open loop (default: the card's horizon, the whole chunk)",
+    )
+    parser.add_argument(
+        "--num-steps",
+        type=int,
+        default=None,
+        help="flow: Euler steps of sampling (default: the card's count: 10, or a distilled flow's own; an ONNX file has its count fixed)",
+    )
+    parser.add_argument(
+        "--noise-scale",
+        type=float,
+        default=1.0,
+        help="flow: multiply the start noise by this (on top of the model's own noise_scale)",
+    )
+    parser.add_argument(
+        "--fixed-noise",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="flow: every decision starts from the noise of this one seed (the policy as a deterministic map)",
+    )
+    _output_arguments(parser)
+    return parser
+
+
+def _output_arguments(parser: argparse.ArgumentParser) -> None:
+    """The episode limit and what the run writes besides its JSON line."""
+    parser.add_argument("--max-steps", type=int, default=300, help="episode step limit")
+    parser.add_argument(
+        "--out",
+        default=None,
+        metavar="FILE",
+        help="write one JSON line per episode (seed, max_reward, success, length, policy, card) to FILE",
+    )
+    parser.add_argument(
+        "--gif",
+        default=None,
+        metavar="FILE",
+        help="write the first episode as an animated GIF (real speed, step/coverage/success caption) to FILE",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+
+
 def load_model(model: str | Path, num_steps: int | None = None) -> Policy:
     """`acting.load_policy(model, num_steps=...)`, naming a missing ONNX file itself rather than its card."""
     path = Path(model)
@@ -95,45 +148,51 @@ def load_model(model: str | Path, num_steps: int | None = None) -> Policy:
     return load_policy(path, num_steps=num_steps)
 
 
+@dataclass(frozen=True)
+class EvalSettings:
+    """How `evaluate_policy` plays: `num_envs=None`: all episodes at once; `action_horizon=None`: the policy's whole chunk;
+    flow noise times `noise_scale`, each row's from its own seed or every row's from `fixed_noise`; frames captioned."""
+
+    num_envs: int | None = None
+    env: str = "pusht"
+    action_horizon: int | None = None
+    max_steps: int = 300
+    noise_scale: float = 1.0
+    progress: bool | Callable[[int, int], None] = False
+    record_frames: bool = False
+    record_trajectories: bool = False
+    fixed_noise: int | None = None
+
+
 def evaluate_policy(
-    policy: Policy | Any,
-    episodes: int = 100,
-    seed: int = TRAIN_EVAL_SEED,
-    num_envs: int | None = None,
-    env: str = "pusht",
-    action_horizon: int | None = None,
-    max_steps: int = 300,
-    noise_scale: float = 1.0,
-    progress: bool | Callable[[int, int], None] = False,
-    record_frames: bool = False,
-    record_trajectories: bool = False,
-    fixed_noise: int | None = None,
+    policy: Policy | Any, episodes: int = 100, seed: int = TRAIN_EVAL_SEED, settings: EvalSettings | None = None, **changes: Any
 ) -> RolloutSummary:
     """Roll out `policy` (an `acting.Policy`, or a torch ActingPolicy module) on seeds seed..seed+episodes-1.
 
-    `num_envs=None`: all episodes at once. `action_horizon=None`: the policy's whole chunk. A flow samples in the
-    policy's own step count (`load_policy(..., num_steps=)`; a module's `num_steps`). Each row's flow noise comes
-    from its own seed (`row_noise`), or every row's from `fixed_noise`, times `noise_scale`; recorded frames are captioned.
+    `settings` (default `EvalSettings()`) with `changes`, its fields by name, applied. A flow samples in the policy's own
+    step count (`load_policy(..., num_steps=)`; a module's `num_steps`); row noise from `row_noise`.
     """
+    s = replace(settings or EvalSettings(), **changes)
+    action_horizon, progress = s.action_horizon, s.progress
     policy = as_policy(policy)
     if action_horizon is None:
         action_horizon = policy.horizon
     elif isinstance(action_horizon, int) and action_horizon > policy.horizon:
         raise ValueError(f"action_horizon {action_horizon} exceeds the policy's chunk of {policy.horizon} actions")
-    act = rollout_act(policy, noise_scale, fixed_noise)
+    act = rollout_act(policy, s.noise_scale, s.fixed_noise)
     seeds = episode_seeds(seed, episodes)
     if progress is True:
         progress = _tqdm_progress(len(seeds))
     return run_episodes(
         act,
         seeds,
-        num_envs=num_envs or len(seeds),
-        max_steps=max_steps,
+        num_envs=s.num_envs or len(seeds),
+        max_steps=s.max_steps,
         action_horizon=action_horizon,
-        env_factory=env_factory(env, max_steps),
+        env_factory=env_factory(s.env, s.max_steps),
         progress=progress,
-        record_frames=annotated_frame if record_frames else False,
-        record_trajectories=record_trajectories,
+        record_frames=annotated_frame if s.record_frames else False,
+        record_trajectories=s.record_trajectories,
         prev_states=policy.takes_prev_state,
     )
 

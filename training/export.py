@@ -26,10 +26,10 @@ import torch
 
 from acting import read_card
 from acting.onnx_backend import batch_invariant, onnx_session
+from policies.base import ActingPolicy
+from policies.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, update_card
 from pusht.spec import DEFAULT_NUM_STEPS
-from training.checkpoint import CheckpointError, checkpoint_stem, load_acting_policy, update_card
 from training.cli import HelpFormatter
-from training.policies import ActingPolicy
 
 OPSET = 18
 # Exported and torch actions must agree to this many pixels on random states (float32 rounding only).
@@ -40,22 +40,16 @@ INVARIANCE_CHECK_SIZES = (2, 3, 4, 5, 8, 37)
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: export one checkpoint or every named one in a models folder."""
-    parser = argparse.ArgumentParser(
-        prog="python -m training.export",
-        description="Export checkpoints (NAME.safetensors + NAME.json) to ONNX files with normalization and clipping inside the graph.",
-        formatter_class=HelpFormatter,
-    )
-    parser.add_argument("--models-dir", default="models", help="folder of the checkpoints; writes MODELS_DIR/NAME.onnx for each --names")
-    parser.add_argument("--names", nargs="+", default=["mse", "flow"], help="checkpoint names inside --models-dir")
-    parser.add_argument("--checkpoint", default=None, help="export this one checkpoint stem (DIR/NAME) instead; needs --out")
-    parser.add_argument("--out", default=None, help="output .onnx path for --checkpoint (default: STEM.onnx; the card records it only if beside the card)")
-    parser.add_argument("--num-steps", type=int, default=None, help=f"flow: Euler steps unrolled into the graph (default: a distilled flow's own count, else {DEFAULT_NUM_STEPS})")
-    parser.add_argument("--triton-repo", default=None, help="write each export as a Triton model repository entry DIR/NAME/1/model.onnx with its config.pbtxt instead")
-    parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
+    parser = _parser()
     args = parser.parse_args(argv)
 
     if args.checkpoint is not None:
-        jobs = [(checkpoint_stem(args.checkpoint), Path(args.out) if args.out else checkpoint_stem(args.checkpoint).with_suffix(".onnx"))]
+        jobs = [
+            (
+                checkpoint_stem(args.checkpoint),
+                Path(args.out) if args.out else checkpoint_stem(args.checkpoint).with_suffix(".onnx"),
+            )
+        ]
     else:
         if args.out is not None:
             parser.error("--out needs --checkpoint")
@@ -71,14 +65,50 @@ def main(argv: list[str] | None = None) -> int:
             if args.triton_repo is not None:
                 from training.triton_repo import write_config
 
-                print(f"{write_config(out.parent.parent, read_card(stem))}: Triton config (onnxruntime backend, dynamic batching)")
+                print(
+                    f"{write_config(out.parent.parent, read_card(stem))}: Triton config (onnxruntime backend, dynamic batching)"
+                )
         except (CheckpointError, ValueError, OSError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             status = 2
             continue
         note = "card updated" if info["card_updated"] else "not beside the card: card left unchanged"
-        print(f"{stem} -> {out} (inputs {info['inputs']}, outputs {info['outputs']}, opset {info['opset']}, max diff {info['max_abs_diff']:.2e} px; {note})")
+        print(
+            f"{stem} -> {out} (inputs {info['inputs']}, outputs {info['outputs']}, opset {info['opset']}, max diff {info['max_abs_diff']:.2e} px; {note})"
+        )
     return status
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line."""
+    parser = argparse.ArgumentParser(
+        prog="python -m training.export",
+        description="Export checkpoints (NAME.safetensors + NAME.json) to ONNX files with normalization and clipping inside the graph.",
+        formatter_class=HelpFormatter,
+    )
+    parser.add_argument(
+        "--models-dir", default="models", help="folder of the checkpoints; writes MODELS_DIR/NAME.onnx for each --names"
+    )
+    parser.add_argument("--names", nargs="+", default=["mse", "flow"], help="checkpoint names inside --models-dir")
+    parser.add_argument("--checkpoint", default=None, help="export this one checkpoint stem (DIR/NAME) instead; needs --out")
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="output .onnx path for --checkpoint (default: STEM.onnx; the card records it only if beside the card)",
+    )
+    parser.add_argument(
+        "--num-steps",
+        type=int,
+        default=None,
+        help=f"flow: Euler steps unrolled into the graph (default: a distilled flow's own count, else {DEFAULT_NUM_STEPS})",
+    )
+    parser.add_argument(
+        "--triton-repo",
+        default=None,
+        help="write each export as a Triton model repository entry DIR/NAME/1/model.onnx with its config.pbtxt instead",
+    )
+    parser.add_argument("--opset", type=int, default=OPSET, help="ONNX opset (>= 17)")
+    return parser
 
 
 def default_num_steps(stem: str | Path) -> int:
@@ -86,7 +116,9 @@ def default_num_steps(stem: str | Path) -> int:
     return int(read_card(checkpoint_stem(stem)).sampler_steps or DEFAULT_NUM_STEPS)
 
 
-def export_onnx(stem: str | Path, out_path: str | Path | None = None, num_steps: int | None = None, opset: int = OPSET) -> dict[str, Any]:
+def export_onnx(
+    stem: str | Path, out_path: str | Path | None = None, num_steps: int | None = None, opset: int = OPSET
+) -> dict[str, Any]:
     """Export checkpoint `stem` to `out_path` (default STEM.onnx) and verify it; returns the onnx info (plus max_abs_diff).
 
     `num_steps=None` unrolls the checkpoint's own count (`default_num_steps`). The card also records whether each row's
@@ -150,7 +182,9 @@ def verify_onnx(path: str | Path, acting: ActingPolicy, batches: tuple[int, ...]
     expected_inputs = graph_inputs(acting)
     names = [i.name for i in session.get_inputs()]
     if names != expected_inputs or [o.name for o in session.get_outputs()] != ["actions"]:
-        raise ValueError(f"{path}: inputs {names} / outputs {[o.name for o in session.get_outputs()]}, expected {expected_inputs} / ['actions']")
+        raise ValueError(
+            f"{path}: inputs {names} / outputs {[o.name for o in session.get_outputs()]}, expected {expected_inputs} / ['actions']"
+        )
     worst = 0.0
     for i, batch in enumerate(batches):
         example = _example_inputs(acting, batch=batch, seed=1000 + i)

@@ -21,17 +21,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from policies.checkpoint import git_commit, load_checkpoint, require_state_only, save_checkpoint
 from training.chunk_env import ChunkVectorEnv
+from training.evaluate import evaluate_policy
 from training.finetune_config import RESUMABLE_CHANGES, FinetuneConfig, parse_config
 from training.outcome_fit import FlowChooser, OutcomeFit
+from training.run import Run, RunError, RunStopped, pack_rng, unpack_rng
 
 __all__ = ["finetune", "main"]
 
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: 0 when finished, 2 on a bad setting, 128 + N when stopped by signal N."""
-    from training.run import RunError
-
     cfg = parse_config(argv)
     try:
         return finetune(cfg).exit_code()
@@ -42,92 +43,139 @@ def main(argv: list[str] | None = None) -> int:
 
 def finetune(cfg: FinetuneConfig):
     """Run (or resume) one fine-tuning as configured; returns its `training.run.Run` (folder in `.dir`)."""
-    from training.checkpoint import git_commit, load_checkpoint, require_state_only, save_checkpoint
-    from training.evaluate import evaluate_policy
-    from training.run import Run, RunStopped, pack_rng, unpack_rng
-
-    torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
-    base, base_card = load_checkpoint(cfg.init)
-    if base_card["kind"] != "flow":
-        raise ValueError(f"{cfg.init} is a {base_card['kind']} checkpoint; fine-tuning needs a flow")
-    require_state_only(base_card, cfg.init, "fine-tuning")
-    agent = FlowChooser(base, base_card, cfg)
-    generator = torch.Generator().manual_seed(cfg.seed)
-    algorithm = OutcomeFit(agent, cfg, generator)
-    run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite, may_change=RESUMABLE_CHANGES)
-    card = {"name": "flow", "config": cfg.to_dict(), "git_commit": git_commit(), "init": str(cfg.init), "reproduce": {"finetune": cfg.command()}}
-    first, episodes_before = 1, 0
-    state = run.load_state()
-    if state is not None:
-        step, tensors, extra = state
-        algorithm.load_state(tensors, extra)
-        unpack_rng(tensors, {"main": generator})
-        first, episodes_before = step + 1, extra["episodes_started"]
-        run.log({"type": "resume", "step": step})
-    # training seeds go on where they stopped: a resumed run never replays an episode seed
-    envs = ChunkVectorEnv(cfg.num_envs, cfg.train_seed_start + episodes_before)
-    bar = _progress_bar(cfg.iterations, cfg.progress, first - 1)
-
-    def evaluate(iteration: int) -> dict:
-        summary = evaluate_policy(agent.acting, episodes=cfg.eval_episodes, seed=cfg.eval_seed)
-        record = {"type": "eval", "step": iteration, "mean_max_reward": summary.mean_max_reward,
-                  "mean_max_reward_ci95": list(summary.mean_max_reward_ci95), "success_rate": summary.success_rate,
-                  "success_rate_ci95": list(summary.success_rate_ci95), "seeds": [summary.seeds[0], summary.seeds[-1]],
-                  "episodes": len(summary.episodes)}
-        run.log(record)
-        return record
-
-    def save(iteration: int, finished: bool = False) -> None:
-        evaluation = next((r for r in reversed(run.records) if r["type"] == "eval"), None)
-        save_checkpoint(str(run.dir / "last"), agent.policy, agent.normalization, **card, steps=iteration,
-                        wall_time_s=run.elapsed_s, evaluation=evaluation, finished=finished)
-        if not finished:
-            tensors, extra = algorithm.state()
-            run.save_state(iteration, {**tensors, **pack_rng({"main": generator})},
-                           {**extra, "episodes_started": episodes_before + envs.episodes_started})
-        _plot(run.records, run.dir / "learning_curve.png")
-
-    if first == 1 and cfg.eval_every > 0:
-        evaluate(0)
-    finished_max: list[float] = []
-    finished_success: list[bool] = []
-    iteration = first - 1
+    job = _FineTuning(cfg)
+    iteration = job.first - 1
     try:
-        for iteration in range(first, cfg.iterations + 1):
-            stats = algorithm.iterate(envs, finished_max, finished_success)
-            if iteration % cfg.log_every == 0 or iteration == cfg.iterations:
-                record = {"type": "train", "step": iteration, "episodes": episodes_before + envs.episodes_started,
-                          "episode_max_reward": float(np.mean(finished_max)) if finished_max else None,
-                          "episode_success": float(np.mean(finished_success)) if finished_success else None,
-                          "wall_time_s": run.elapsed_s, **stats}
-                run.log(record)
-                finished_max.clear()
-                finished_success.clear()
-                bar.set_postfix(success=record["episode_success"])
-            bar.update(1)
-            if cfg.eval_every > 0 and iteration % cfg.eval_every == 0 and iteration < cfg.iterations:
-                with run.interruptible():  # a stop must not wait for a long evaluation
-                    evaluate(iteration)
-            if run.stop_requested or (iteration < cfg.iterations and iteration % cfg.checkpoint_every == 0):
-                save(iteration)
-            if run.stop_requested:
+        for iteration in range(job.first, cfg.iterations + 1):
+            job.iterate(iteration)
+            if job.run.stop_requested:
                 break
         else:
-            if cfg.eval_every > 0:
-                evaluate(cfg.iterations)
-            save(cfg.iterations, finished=True)
-            run.finish(cfg.iterations)
-            print(f"done: {cfg.iterations} iterations in {run.elapsed_s:.0f} s; outputs in {run.dir}", file=sys.stderr)
+            job.finish()
     except RunStopped:
-        save(iteration)
+        job.save(iteration)
     finally:
-        bar.close()
-        run.close()
-    if run.stop_requested:
-        print(f"stopped by {run.stop_signal} after iteration {iteration} of {cfg.iterations}; continue with the same command "
-              f"and --resume (state in {run.dir})", file=sys.stderr)
-    return run
+        job.bar.close()
+        job.run.close()
+    if job.run.stop_requested:
+        print(
+            f"stopped by {job.run.stop_signal} after iteration {iteration} of {cfg.iterations}; continue with the same "
+            f"command and --resume (state in {job.run.dir})",
+            file=sys.stderr,
+        )
+    return job.run
+
+
+class _FineTuning:
+    """One fine-tuning's state: the chooser, its outcome fit, the envs and the run folder."""
+
+    def __init__(self, cfg: FinetuneConfig) -> None:
+        self.cfg = cfg
+        torch.set_num_threads(cfg.threads)
+        torch.manual_seed(cfg.seed)
+        base, base_card = load_checkpoint(cfg.init)
+        if base_card["kind"] != "flow":
+            raise ValueError(f"{cfg.init} is a {base_card['kind']} checkpoint; fine-tuning needs a flow")
+        require_state_only(base_card, cfg.init, "fine-tuning")
+        self.agent = FlowChooser(base, base_card, cfg)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.algorithm = OutcomeFit(self.agent, cfg, self.generator)
+        self.run = Run.start(
+            cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite, may_change=RESUMABLE_CHANGES
+        )
+        self.card = {
+            "name": "flow",
+            "config": cfg.to_dict(),
+            "git_commit": git_commit(),
+            "init": str(cfg.init),
+            "reproduce": {"finetune": cfg.command()},
+        }
+        self.first, self.episodes_before = 1, 0
+        state = self.run.load_state()
+        if state is not None:
+            step, tensors, extra = state
+            self.algorithm.load_state(tensors, extra)
+            unpack_rng(tensors, {"main": self.generator})
+            self.first, self.episodes_before = step + 1, extra["episodes_started"]
+            self.run.log({"type": "resume", "step": step})
+        # training seeds go on where they stopped: a resumed run never replays an episode seed
+        self.envs = ChunkVectorEnv(cfg.num_envs, cfg.train_seed_start + self.episodes_before)
+        self.bar = _progress_bar(cfg.iterations, cfg.progress, self.first - 1)
+        self.finished_max: list[float] = []
+        self.finished_success: list[bool] = []
+        if self.first == 1 and cfg.eval_every > 0:
+            self.evaluate(0)
+
+    def iterate(self, iteration: int) -> None:
+        """One outcome-fit iteration, its log record, the periodic evaluation and resumable state."""
+        cfg, run = self.cfg, self.run
+        stats = self.algorithm.iterate(self.envs, self.finished_max, self.finished_success)
+        if iteration % cfg.log_every == 0 or iteration == cfg.iterations:
+            record = {
+                "type": "train",
+                "step": iteration,
+                "episodes": self.episodes_before + self.envs.episodes_started,
+                "episode_max_reward": float(np.mean(self.finished_max)) if self.finished_max else None,
+                "episode_success": float(np.mean(self.finished_success)) if self.finished_success else None,
+                "wall_time_s": run.elapsed_s,
+                **stats,
+            }
+            run.log(record)
+            self.finished_max.clear()
+            self.finished_success.clear()
+            self.bar.set_postfix(success=record["episode_success"])
+        self.bar.update(1)
+        if cfg.eval_every > 0 and iteration % cfg.eval_every == 0 and iteration < cfg.iterations:
+            with run.interruptible():  # a stop must not wait for a long evaluation
+                self.evaluate(iteration)
+        if run.stop_requested or (iteration < cfg.iterations and iteration % cfg.checkpoint_every == 0):
+            self.save(iteration)
+
+    def evaluate(self, iteration: int) -> dict:
+        cfg = self.cfg
+        summary = evaluate_policy(self.agent.acting, episodes=cfg.eval_episodes, seed=cfg.eval_seed)
+        record = {
+            "type": "eval",
+            "step": iteration,
+            "mean_max_reward": summary.mean_max_reward,
+            "mean_max_reward_ci95": list(summary.mean_max_reward_ci95),
+            "success_rate": summary.success_rate,
+            "success_rate_ci95": list(summary.success_rate_ci95),
+            "seeds": [summary.seeds[0], summary.seeds[-1]],
+            "episodes": len(summary.episodes),
+        }
+        self.run.log(record)
+        return record
+
+    def save(self, iteration: int, finished: bool = False) -> None:
+        run = self.run
+        evaluation = next((r for r in reversed(run.records) if r["type"] == "eval"), None)
+        save_checkpoint(
+            str(run.dir / "last"),
+            self.agent.policy,
+            self.agent.normalization,
+            **self.card,
+            steps=iteration,
+            wall_time_s=run.elapsed_s,
+            evaluation=evaluation,
+            finished=finished,
+        )
+        if not finished:
+            tensors, extra = self.algorithm.state()
+            run.save_state(
+                iteration,
+                {**tensors, **pack_rng({"main": self.generator})},
+                {**extra, "episodes_started": self.episodes_before + self.envs.episodes_started},
+            )
+        _plot(run.records, run.dir / "learning_curve.png")
+
+    def finish(self) -> None:
+        cfg = self.cfg
+        if cfg.eval_every > 0:
+            self.evaluate(cfg.iterations)
+        self.save(cfg.iterations, finished=True)
+        self.run.finish(cfg.iterations)
+        print(f"done: {cfg.iterations} iterations in {self.run.elapsed_s:.0f} s; outputs in {self.run.dir}", file=sys.stderr)
 
 
 def _plot(records: list[dict], path: Path) -> None:
@@ -140,7 +188,9 @@ def _plot(records: list[dict], path: Path) -> None:
     train = [r for r in records if r["type"] == "train" and r.get("episode_success") is not None]
     evals = [r for r in records if r["type"] == "eval"]
     fig, ax = plt.subplots(figsize=(7, 4))
-    ax.plot([r["step"] for r in train], [r["episode_success"] for r in train], lw=1, alpha=0.6, label="training episodes: success")
+    ax.plot(
+        [r["step"] for r in train], [r["episode_success"] for r in train], lw=1, alpha=0.6, label="training episodes: success"
+    )
     if evals:
         steps = [r["step"] for r in evals]
         ax.plot(steps, [r["success_rate"] for r in evals], "s-", label="evaluation: success")

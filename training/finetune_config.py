@@ -23,10 +23,17 @@ ALGOS = ("outcome",)
 class FinetuneConfig:
     """Everything that defines a fine-tuning run."""
 
-    init: str = option("", "flow checkpoint stem to fine-tune (its weights stay frozen), or a flow with an outcome chooser, whose "
-                       "model the fit goes on fitting", required=True)
-    algo: str = option("outcome", "what is fitted: outcome (a one-chunk model of the block that picks the best of --candidates chunks)",
-                       choices=ALGOS)
+    init: str = option(
+        "",
+        "flow checkpoint stem to fine-tune (its weights stay frozen), or a flow with an outcome chooser, whose "
+        "model the fit goes on fitting",
+        required=True,
+    )
+    algo: str = option(
+        "outcome",
+        "what is fitted: outcome (a one-chunk model of the block that picks the best of --candidates chunks)",
+        choices=ALGOS,
+    )
     name: str = option("flow-outcome", "run name; outputs go to OUT_DIR/NAME")
     out_dir: str = option("runs", "parent folder of run folders")
     iterations: int = option(100, "iterations (each: rollout_decisions chunks in every env, each followed by the updates)")
@@ -34,7 +41,9 @@ class FinetuneConfig:
     rollout_decisions: int = option(8, "chunks per env between updates")
     critic_lr: float = option(1e-3, "Adam learning rate of the outcome model")
     outcome_dims: str = option("512,512,512,512", "hidden widths of the one-chunk outcome model (comma-separated)")
-    stretches: str = option("1", "stretches of each candidate chunk (comma-separated, the first 1): a chunk's targets s times as far from the agent")
+    stretches: str = option(
+        "1", "stretches of each candidate chunk (comma-separated, the first 1): a chunk's targets s times as far from the agent"
+    )
     explore: float = option(0.2, "probability that an env plays a random candidate instead of the model's choice")
     batch_size: int = option(256, "minibatch size")
     buffer_size: int = option(1_000_000, "replay capacity (labels)")
@@ -47,8 +56,12 @@ class FinetuneConfig:
     eval_every: int = option(50, "evaluate (and checkpoint) every N iterations (0: only at the end)")
     eval_episodes: int = option(200, "episodes per evaluation")
     eval_seed: int = option(400_000, "first evaluation episode seed (never a held-out one)")
-    checkpoint_every: int = option(25, "save a resumable state and the `last` checkpoint every N iterations (and on SIGTERM/SIGINT)")
-    resume: bool = option(False, "continue the existing run NAME to its configured iterations from its latest resumable state (same config)")
+    checkpoint_every: int = option(
+        25, "save a resumable state and the `last` checkpoint every N iterations (and on SIGTERM/SIGINT)"
+    )
+    resume: bool = option(
+        False, "continue the existing run NAME to its configured iterations from its latest resumable state (same config)"
+    )
     overwrite: bool = option(False, "delete the existing run NAME and start it again")
     log_every: int = option(5, "write a log.jsonl record every N iterations")
     seed: int = option(0, "seed of torch (start noise, minibatch order, initialization)")
@@ -60,8 +73,21 @@ class FinetuneConfig:
             raise ValueError("init must name the flow checkpoint to fine-tune")
         if self.algo not in ALGOS:
             raise ValueError(f"algo must be one of {ALGOS}, got {self.algo!r}")
-        positive = ("iterations", "num_envs", "rollout_decisions", "flow_num_steps", "eval_episodes", "log_every", "threads", "batch_size",
-                    "buffer_size", "updates_per_decision", "label_envs", "checkpoint_every", "candidates")
+        positive = (
+            "iterations",
+            "num_envs",
+            "rollout_decisions",
+            "flow_num_steps",
+            "eval_episodes",
+            "log_every",
+            "threads",
+            "batch_size",
+            "buffer_size",
+            "updates_per_decision",
+            "label_envs",
+            "checkpoint_every",
+            "candidates",
+        )
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -82,12 +108,14 @@ class FinetuneConfig:
 
     def stretches_list(self) -> list[float]:
         """`stretches` as a list of floats."""
-        from training.architecture import check_stretches
+        from policies.configuration import check_stretches
 
         try:
             return check_stretches([float(s) for s in self.stretches.split(",")])
         except ValueError:
-            raise ValueError(f"stretches must be comma-separated numbers in (0, 4] starting with 1, got {self.stretches!r}") from None
+            raise ValueError(
+                f"stretches must be comma-separated numbers in (0, 4] starting with 1, got {self.stretches!r}"
+            ) from None
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict of every field."""
@@ -100,7 +128,11 @@ class FinetuneConfig:
 
 def parse_config(argv: list[str] | None = None) -> FinetuneConfig:
     """Parse command-line flags into a validated FinetuneConfig (argparse reports bad values)."""
-    parser = build_parser(FinetuneConfig, PROG, "Fine-tune a flow beyond imitation, its weights frozen: fit a one-chunk outcome model that chooses among its chunks.")
+    parser = build_parser(
+        FinetuneConfig,
+        PROG,
+        "Fine-tune a flow beyond imitation, its weights frozen: fit a one-chunk outcome model that chooses among its chunks.",
+    )
     args = parser.parse_args(argv)
     try:
         return FinetuneConfig(**vars(args))

@@ -59,16 +59,25 @@ class FlowChooser:
     """The frozen flow with a fresh (or warm) outcome chooser: what the fit trains and evaluates."""
 
     def __init__(self, base: torch.nn.Module, base_card: dict, cfg: FinetuneConfig) -> None:
-        from training.policies import ActingPolicy, build_policy
+        from policies.base import ActingPolicy
+        from policies.factory import build_policy
 
         arch = base_card["architecture"]
         # An outcome chooser may start another outcome fit (its model warm, its stretches and candidates as configured).
         if arch.get("outcome_dims") is not None and list(arch["outcome_dims"]) != cfg.outcome_dims_list():
-            raise ValueError(f"{cfg.init}: its outcome chooser has outcome_dims {arch['outcome_dims']}; --outcome-dims must match to start from it")
-        added = {"outcome_dims": cfg.outcome_dims_list(), "outcome_candidates": cfg.candidates, "outcome_stretches": cfg.stretches_list()}
+            raise ValueError(
+                f"{cfg.init}: its outcome chooser has outcome_dims {arch['outcome_dims']}; --outcome-dims must match to start from it"
+            )
+        added = {
+            "outcome_dims": cfg.outcome_dims_list(),
+            "outcome_candidates": cfg.candidates,
+            "outcome_stretches": cfg.stretches_list(),
+        }
         self.policy = build_policy("flow", **{**base_card["architecture"], **added})
         # the candidate maps follow from the candidate count (a fixed seed), so a warm start takes them as configured
-        missing, unexpected = self.policy.load_state_dict({k: v for k, v in base.state_dict().items() if k != "outcome.rotations"}, strict=False)
+        missing, unexpected = self.policy.load_state_dict(
+            {k: v for k, v in base.state_dict().items() if k != "outcome.rotations"}, strict=False
+        )
         self.policy.normalizer.set(base.normalizer)
         if unexpected or any(not k.startswith("outcome.") for k in missing):
             raise ValueError(f"{cfg.init}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
@@ -91,7 +100,9 @@ class OutcomeFit(Resumable):
         self.agent, self.cfg, self.generator = agent, cfg, generator
         self.selector = agent.policy.outcome
         self.opt = torch.optim.Adam(self.selector.model.parameters(), lr=cfg.critic_lr)
-        self.replay = ReplayBuffer(cfg.buffer_size, agent.policy.state_dim, agent.chunk_shape[0] * agent.chunk_shape[1], self.FIELDS)
+        self.replay = ReplayBuffer(
+            cfg.buffer_size, agent.policy.state_dim, agent.chunk_shape[0] * agent.chunk_shape[1], self.FIELDS
+        )
         self.rng = np.random.default_rng(cfg.seed)
 
     def parts(self) -> tuple[dict, dict, dict]:
@@ -115,7 +126,9 @@ class OutcomeFit(Resumable):
             states = torch.as_tensor(envs.obs, dtype=torch.float32)
             noise = torch.randn((envs.num_envs, *agent.chunk_shape), generator=self.generator)
             with torch.no_grad():
-                _, actions = self.selector.candidate_chunks(agent.policy, agent.policy.policy_state(states), noise, agent.num_steps)
+                _, actions = self.selector.candidate_chunks(
+                    agent.policy, agent.policy.policy_state(states), noise, agent.num_steps
+                )
                 chosen = self.selector.choose(states, actions).numpy()
             self._label(envs, states, actions.numpy())
             explore = self.rng.random(envs.num_envs) < cfg.explore
@@ -133,8 +146,11 @@ class OutcomeFit(Resumable):
         rows = self.rng.permutation(envs.num_envs)[: self.cfg.label_envs]
         k = self.selector.choices
         ends = np.concatenate([envs.lookahead(int(i), actions[i]).next_obs for i in rows])
-        self.replay.add(enc=states[rows].repeat_interleave(k, dim=0), x0=torch.as_tensor(actions[rows]).flatten(0, 1),
-                        end=torch.as_tensor(ends, dtype=torch.float32))
+        self.replay.add(
+            enc=states[rows].repeat_interleave(k, dim=0),
+            x0=torch.as_tensor(actions[rows]).flatten(0, 1),
+            end=torch.as_tensor(ends, dtype=torch.float32),
+        )
 
     def _update(self) -> float:
         batch = self.replay.sample(self.cfg.batch_size, self.generator)

@@ -70,10 +70,16 @@ class Recipe:
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point: 0 when every stage finished, 2 on a bad recipe or setting, 128 + N when stopped by signal N."""
-    parser = argparse.ArgumentParser(prog="python -m training.recipe", description=__doc__.splitlines()[0],
-                                     formatter_class=HelpFormatter)
+    parser = argparse.ArgumentParser(
+        prog="python -m training.recipe", description=__doc__.splitlines()[0], formatter_class=HelpFormatter
+    )
     parser.add_argument("recipe", help="the recipe file, e.g. recipes/flow.toml")
-    parser.add_argument("--scale", type=float, default=1.0, help="multiply every stage's steps, iterations and episodes by this (0.01: a smoke run)")
+    parser.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="multiply every stage's steps, iterations and episodes by this (0.01: a smoke run)",
+    )
     parser.add_argument("--out-dir", default="runs/recipes", help="where stage outputs are cached")
     parser.add_argument("--models-dir", default="models", help="where the ship stage writes the policy")
     parser.add_argument("--records-dir", default="records", help="where the ship stage writes the run's small evidence")
@@ -84,8 +90,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--scale must be in (0, 1], got {args.scale}")
     try:
         recipe = load_recipe(Path(args.recipe))
-        options = RunOptions(Path(args.out_dir), Path(args.models_dir), Path(args.records_dir), args.scale, args.threads,
-                             not args.no_progress)
+        options = RunOptions(
+            Path(args.out_dir), Path(args.models_dir), Path(args.records_dir), args.scale, args.threads, not args.no_progress
+        )
         results = run_recipe(recipe, options)
     except (RecipeError, ValueError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -128,7 +135,13 @@ class StageResult:
     exit_code: int = 0
 
     def as_card(self) -> dict[str, Any]:
-        return {"name": self.stage, "run": self.run, "key": self.key, "wall_time_s": round(self.wall_time_s, 1), "score": self.score}
+        return {
+            "name": self.stage,
+            "run": self.run,
+            "key": self.key,
+            "wall_time_s": round(self.wall_time_s, 1),
+            "score": self.score,
+        }
 
 
 def load_recipe(path: Path) -> Recipe:
@@ -145,7 +158,7 @@ def load_recipe(path: Path) -> Recipe:
     if not isinstance(data.get("default", False), bool):
         raise RecipeError(f"{path}: `default` must be true or false")
     if not isinstance(data.get("policy"), str) or not data["policy"]:
-        raise RecipeError(f"{path}: needs `policy = \"NAME\"`, the name it ships as")
+        raise RecipeError(f'{path}: needs `policy = "NAME"`, the name it ships as')
     raw = data.get("stage")
     if not isinstance(raw, list) or not raw:
         raise RecipeError(f"{path}: needs at least one [[stage]]")
@@ -153,7 +166,7 @@ def load_recipe(path: Path) -> Recipe:
     for index, table in enumerate(raw):
         stages.append(_parse_stage(path, index, dict(table), [s.name for s in stages]))
     if stages[-1].run != "ship":
-        raise RecipeError(f"{path}: the last stage must be `run = \"ship\"`")
+        raise RecipeError(f'{path}: the last stage must be `run = "ship"`')
     return Recipe(path, data["policy"], str(data.get("description", "")), stages, data.get("default", False))
 
 
@@ -178,7 +191,7 @@ def _parse_stage(path: Path, index: int, table: dict[str, Any], earlier: list[st
     allowed = _settings_fields(run)
     unknown = sorted(set(table) - allowed)
     if unknown:
-        raise RecipeError(f"{where} ({name}): unknown settings for `run = \"{run}\"`: {unknown}")
+        raise RecipeError(f'{where} ({name}): unknown settings for `run = "{run}"`: {unknown}')
     return Stage(name, run, table, source if run != "train" else None, acting)
 
 
@@ -196,7 +209,7 @@ def _settings_fields(run: str) -> set[str]:
 
 def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
     """Run (or take from the cache) every stage in order; stops after a stage that was stopped by a signal."""
-    from training.checkpoint import git_commit
+    from policies.checkpoint import git_commit
 
     commit = git_commit()
     results: dict[str, StageResult] = {}
@@ -209,7 +222,21 @@ def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
         print(f"[{index}/{len(recipe.stages)}] {stage.name} ({stage.run}) -> {stage_dir}", file=sys.stderr, flush=True)
         result = _cached(stage, key, stage_dir, options.models_dir / f"{recipe.policy}.json")
         if result is None:
-            result = _run_stage(recipe, stage, settings, source, stage_dir, key, options, list(results.values()), commit)
+            from training.recipe_stages import StageContext
+
+            result = _run_stage(
+                StageContext(
+                    recipe,
+                    stage,
+                    settings,
+                    source.dir if source else None,
+                    stage_dir,
+                    options,
+                    list(results.values()),
+                    commit,
+                    key,
+                )
+            )
         results[stage.name] = result
         if result.exit_code:
             break
@@ -239,8 +266,9 @@ def _default(cls: type, name: str) -> Any:
     return next(f.default for f in fields(cls) if f.name == name)
 
 
-def stage_key(stage: Stage, settings: dict[str, Any], source: StageResult | None, scale: float,
-              shipped: dict[str, Any] | None = None) -> str:
+def stage_key(
+    stage: Stage, settings: dict[str, Any], source: StageResult | None, scale: float, shipped: dict[str, Any] | None = None
+) -> str:
     """A hash of what the stage computes from: its kind, settings, acting settings and its input (a stage's key or the data;
     for ship also what the recipe says of the policy it ships)."""
     inputs: dict[str, Any] = {"from": source.key if source else None}
@@ -248,8 +276,9 @@ def stage_key(stage: Stage, settings: dict[str, Any], source: StageResult | None
         inputs["shipped"] = shipped
     if stage.run == "train":
         inputs["data"] = tree_sha256(Path(settings.get("data", "data/pusht_lowdim.zarr")))
-    text = json.dumps({"run": stage.run, "settings": settings, "acting": stage.acting, "inputs": inputs, "scale": scale},
-                      sort_keys=True)
+    text = json.dumps(
+        {"run": stage.run, "settings": settings, "acting": stage.acting, "inputs": inputs, "scale": scale}, sort_keys=True
+    )
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
@@ -287,19 +316,25 @@ def _shipped_by(card: Path, key: str) -> bool:
     return stages[-1].get("key") == key
 
 
-def _run_stage(recipe: Recipe, stage: Stage, settings: dict[str, Any], source: StageResult | None, stage_dir: Path, key: str,
-               options: RunOptions, before: list[StageResult], commit: str) -> StageResult:
+def _run_stage(context: Any) -> StageResult:
+    """Run one stage that is not cached; a stage that finished leaves its DONE_FILE."""
     from training import recipe_stages
 
+    stage, stage_dir, key, commit = context.stage, context.stage_dir, context.key, context.commit
     runner = {"train": recipe_stages.train, "finetune": recipe_stages.finetune, "ship": recipe_stages.ship}[stage.run]
-    context = recipe_stages.StageContext(recipe, stage, settings, source.dir if source else None, stage_dir, options, before,
-                                         commit, key)
     started = time.perf_counter()
     outcome = runner(context)
     wall = outcome.wall_time_s if outcome.wall_time_s is not None else time.perf_counter() - started
     result = StageResult(stage.name, stage.run, key, stage_dir, wall, False, outcome.score, outcome.exit_code)
     if not outcome.exit_code:
-        record = {"key": key, "stage": stage.name, "run": stage.run, "wall_time_s": wall, "score": outcome.score, "git_commit": commit}
+        record = {
+            "key": key,
+            "stage": stage.name,
+            "run": stage.run,
+            "wall_time_s": wall,
+            "score": outcome.score,
+            "git_commit": commit,
+        }
         (stage_dir / DONE_FILE).write_text(json.dumps(record, indent=2) + "\n")
     return result
 
@@ -319,8 +354,10 @@ def format_score(score: dict[str, Any] | None) -> str:
     if not score:
         return "-"
     first, last = score["seeds"]
-    return (f"{100 * score['success_rate']:.1f} % success, {score['mean_max_reward']:.3f} mean max reward "
-            f"({score['episodes']} episodes, seeds {first}..{last}{', ' + score['env'] if 'env' in score else ''})")
+    return (
+        f"{100 * score['success_rate']:.1f} % success, {score['mean_max_reward']:.3f} mean max reward "
+        f"({score['episodes']} episodes, seeds {first}..{last}{', ' + score['env'] if 'env' in score else ''})"
+    )
 
 
 if __name__ == "__main__":

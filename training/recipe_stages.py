@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from training.checkpoint import load_card, set_noise_scale, set_outcome_candidates, update_card
+from policies.checkpoint import load_card, set_noise_scale, set_outcome_candidates, update_card
 
 __all__ = ["StageContext", "StageOutcome", "finetune", "ship", "train"]
 
@@ -42,8 +42,14 @@ class StageContext:
         state = self.stage_dir / "state.json"
         resume = state.is_file() and not json.loads(state.read_text()).get("finished")
         extra = {"threads": self.options.threads} if self.options.threads else {}
-        return {"name": self.stage_dir.name, "out_dir": str(self.stage_dir.parent), "resume": resume,
-                "overwrite": self.stage_dir.exists() and not resume, "progress": self.options.progress, **extra}
+        return {
+            "name": self.stage_dir.name,
+            "out_dir": str(self.stage_dir.parent),
+            "resume": resume,
+            "overwrite": self.stage_dir.exists() and not resume,
+            "progress": self.options.progress,
+            **extra,
+        }
 
 
 @dataclass
@@ -82,6 +88,7 @@ def finetune(ctx: StageContext) -> StageOutcome:
 def ship(ctx: StageContext) -> StageOutcome:
     """Export and score a copy of the source's final checkpoint on held-out seeds; write it to MODELS_DIR/POLICY with its card."""
     from pusht.spec import HELD_OUT_SEED
+    from training.ship import ShipConfig
     from training.ship import ship as ship_run
 
     started = time.perf_counter()
@@ -94,17 +101,34 @@ def ship(ctx: StageContext) -> StageOutcome:
         if (ctx.source_dir / name).is_file():
             shutil.copyfile(ctx.source_dir / name, copy / name)
     _set_acting(copy / "last", ctx.stage.acting)
-    reports = ship_run(copy, ctx.recipe.policy, ctx.options.models_dir, settings["episodes"], settings["seed"], settings["envs"],
-                       note=ctx.recipe.description, records_dir=ctx.options.records_dir, force=True)
+    reports = ship_run(
+        ShipConfig(
+            copy,
+            ctx.recipe.policy,
+            ctx.options.models_dir,
+            ctx.options.records_dir,
+            settings["episodes"],
+            settings["seed"],
+            settings["envs"],
+            note=ctx.recipe.description,
+            force=True,
+        )
+    )
     final = {r["env"]: r for r in reports if r["checkpoint"] == "final"}
     score = final.get("gym-pusht") or next(iter(final.values()))
     wall = time.perf_counter() - started
-    stages = [r.as_card() for r in ctx.before] + [{"name": ctx.stage.name, "run": "ship", "key": ctx.key,
-                                                     "wall_time_s": round(wall, 1), "score": _score(score)}]
-    fields = {"recipe": {"file": _relative(ctx.recipe.path), "sha256": ctx.recipe.sha256}, "git_commit": ctx.commit,
-              "stages": stages, "stages_wall_time_s": round(sum(s["wall_time_s"] for s in stages), 1),
-              "reproduce": f"{RECIPE_COMMAND} {_relative(ctx.recipe.path)}", "run": f"{ctx.options.records_dir.name}/{ctx.recipe.policy}",
-              "default": ctx.recipe.default}
+    stages = [r.as_card() for r in ctx.before] + [
+        {"name": ctx.stage.name, "run": "ship", "key": ctx.key, "wall_time_s": round(wall, 1), "score": _score(score)}
+    ]
+    fields = {
+        "recipe": {"file": _relative(ctx.recipe.path), "sha256": ctx.recipe.sha256},
+        "git_commit": ctx.commit,
+        "stages": stages,
+        "stages_wall_time_s": round(sum(s["wall_time_s"] for s in stages), 1),
+        "reproduce": f"{RECIPE_COMMAND} {_relative(ctx.recipe.path)}",
+        "run": f"{ctx.options.records_dir.name}/{ctx.recipe.policy}",
+        "default": ctx.recipe.default,
+    }
     if ctx.options.scale != 1:
         fields["recipe"]["scale"] = ctx.options.scale
     labels = {str(r.dir): f"<recipe stage {r.stage}>" for r in ctx.before} | {str(copy): f"<recipe stage {ctx.stage.name}>"}
@@ -140,8 +164,12 @@ def _score(evaluation: dict[str, Any] | None) -> dict[str, Any] | None:
     if not evaluation:
         return None
     seeds = evaluation["seeds"]
-    score = {"success_rate": evaluation["success_rate"], "mean_max_reward": round(evaluation["mean_max_reward"], 4),
-             "episodes": evaluation.get("episodes", len(seeds)), "seeds": [seeds[0], seeds[-1]]}
+    score = {
+        "success_rate": evaluation["success_rate"],
+        "mean_max_reward": round(evaluation["mean_max_reward"], 4),
+        "episodes": evaluation.get("episodes", len(seeds)),
+        "seeds": [seeds[0], seeds[-1]],
+    }
     if "env" in evaluation:
         score["env"] = evaluation["env"]
     return score

@@ -45,7 +45,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from training.checkpoint import write_text_atomic
+from policies.checkpoint import write_text_atomic
 
 STATE_FILE = "state.json"
 CONFIG_FILE = "config.json"
@@ -64,8 +64,15 @@ class RunStopped(BaseException):
 class Run:
     """One run folder: config, log, resumable state and the stop signals; see the module docstring."""
 
-    def __init__(self, run_dir: Path, config: dict[str, Any], is_main: bool, resumed: bool, records: list[dict[str, Any]],
-                 state: dict[str, Any] | None) -> None:
+    def __init__(
+        self,
+        run_dir: Path,
+        config: dict[str, Any],
+        is_main: bool,
+        resumed: bool,
+        records: list[dict[str, Any]],
+        state: dict[str, Any] | None,
+    ) -> None:
         self.dir, self.config, self.is_main, self.resumed, self.records = run_dir, config, is_main, resumed, records
         self._state = state  # the saved state.json (resume), else None
         self._clock = time.perf_counter()
@@ -77,8 +84,17 @@ class Run:
                 self._previous_handlers[signum] = signal.signal(signum, self._on_signal)
 
     @classmethod
-    def start(cls, out_dir: str | Path, name: str, config: dict[str, Any], *, resume: bool = False, overwrite: bool = False,
-              is_main: bool = True, may_change: tuple[str, ...] = ("progress", "threads")) -> Run:
+    def start(
+        cls,
+        out_dir: str | Path,
+        name: str,
+        config: dict[str, Any],
+        *,
+        resume: bool = False,
+        overwrite: bool = False,
+        is_main: bool = True,
+        may_change: tuple[str, ...] = ("progress", "threads"),
+    ) -> Run:
         """Check, then create or reopen OUT_DIR/NAME; RunError (nothing written) if it may not be used."""
         if not name or name in (".", "..") or "/" in name or "\\" in name:
             raise RunError(f"run name {name!r} must be a plain folder name (no slashes)")
@@ -92,7 +108,9 @@ class Run:
         if resume:
             state = _check_resumable(run_dir, config, may_change)
         elif exists and not overwrite:
-            raise RunError(f"{run_dir} already exists: choose another --name, or pass --resume to continue it or --overwrite to replace it")
+            raise RunError(
+                f"{run_dir} already exists: choose another --name, or pass --resume to continue it or --overwrite to replace it"
+            )
         elif exists and not (run_dir / CONFIG_FILE).is_file():
             raise RunError(f"{run_dir} is not a run folder (no {CONFIG_FILE}); --overwrite removes run folders only")
         json.dumps(config, allow_nan=False)  # a config that cannot be saved fails before anything is written
@@ -222,8 +240,9 @@ def pack_optimizer(optimizer: torch.optim.Optimizer, prefix: str = "optimizer") 
     return tensors, {"param_groups": state_dict["param_groups"], "other": other}
 
 
-def unpack_optimizer(optimizer: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], extra: dict[str, Any],
-                     prefix: str = "optimizer") -> None:
+def unpack_optimizer(
+    optimizer: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], extra: dict[str, Any], prefix: str = "optimizer"
+) -> None:
     """Load what `pack_optimizer` produced back into `optimizer`."""
     state: dict[int, dict[str, Any]] = {}
     for name, value in tensors.items():
@@ -254,7 +273,9 @@ def pack_rng(generators: dict[str, torch.Generator] | None = None, prefix: str =
     return tensors
 
 
-def unpack_rng(tensors: dict[str, torch.Tensor], generators: dict[str, torch.Generator] | None = None, prefix: str = "rng") -> None:
+def unpack_rng(
+    tensors: dict[str, torch.Tensor], generators: dict[str, torch.Generator] | None = None, prefix: str = "rng"
+) -> None:
     """Restore what `pack_rng` saved (the global RNGs and the named generators)."""
     torch.set_rng_state(tensors[f"{prefix}.torch"])
     pos, has_gauss = (int(v) for v in tensors[f"{prefix}.numpy.pos"])
@@ -289,7 +310,9 @@ def _check_resumable(run_dir: Path, config: dict[str, Any], may_change: tuple[st
 def _read_state(run_dir: Path) -> dict[str, Any]:
     path = run_dir / STATE_FILE
     if not path.is_file():
-        raise RunError(f"{run_dir}: no resumable state ({STATE_FILE}): it stopped before its first checkpoint; start again with --overwrite")
+        raise RunError(
+            f"{run_dir}: no resumable state ({STATE_FILE}): it stopped before its first checkpoint; start again with --overwrite"
+        )
     try:
         state = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:

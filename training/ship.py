@@ -21,12 +21,20 @@ import json
 import shutil
 import sys
 import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from policies.checkpoint import (
+    CheckpointError,
+    load_card,
+    set_acting_pace,
+    set_noise_scale,
+    set_outcome_candidates,
+    update_card,
+    write_text_atomic,
+)
 from pusht.spec import HELD_OUT_SEED
-from training.checkpoint import (CheckpointError, load_card, set_acting_pace, set_noise_scale, set_outcome_candidates, update_card,
-                                 write_text_atomic)
 from training.config import HelpFormatter, command_line
 from training.evaluate import ENVS, evaluate_policy, load_model, report, write_gif
 from training.export import export_onnx
@@ -36,25 +44,25 @@ SHIPPED_SUFFIXES = (".safetensors", ".onnx", ".json")  # the card last: the serv
 
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point."""
-    parser = argparse.ArgumentParser(prog="python -m training.ship", description=__doc__.splitlines()[0], formatter_class=HelpFormatter)
-    parser.add_argument("--run", required=True, help="the finished run folder written by training.train (has last.* and best.*)")
-    parser.add_argument("--name", default=None, help="ship the final checkpoint as MODELS_DIR/NAME (e.g. flow, mse); omit to only record the run")
-    parser.add_argument("--models-dir", default="models", help="where shipped policies live")
-    parser.add_argument("--records-dir", default="records", help="where run records live")
-    parser.add_argument("--episodes", type=int, default=100, help="held-out episodes")
-    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="first held-out episode seed")
-    parser.add_argument("--envs", nargs="+", choices=ENVS, default=list(ENVS), help="envs to score in")
-    parser.add_argument("--noise-scale", type=float, default=None, help="flow: set the sampling noise_scale of the run's final and best checkpoints first (chosen on non-held-out seeds)")
-    parser.add_argument("--acting-pace", type=float, nargs=4, default=None, metavar=("FAR", "NEAR", "RADIUS", "RAMP"),
-                        help="flow with a pace input: set the pace it acts at by goal distance (training.pace), like --noise-scale")
-    parser.add_argument("--outcome-candidates", type=int, default=None, metavar="K",
-                        help="flow with an outcome chooser: set how many candidate chunks it integrates, like --noise-scale")
-    parser.add_argument("--note", default="", help="what changed from the published recipe and why (stored in the card)")
-    parser.add_argument("--force", action="store_true", help="replace MODELS_DIR/NAME even if it scores better on the held-out seeds")
+    parser = _parser()
     args = parser.parse_args(argv)
     try:
-        lines = ship(Path(args.run), args.name, Path(args.models_dir), args.episodes, args.seed, args.envs, args.note,
-                     args.noise_scale, Path(args.records_dir), args.force, args.acting_pace, args.outcome_candidates)
+        lines = ship(
+            ShipConfig(
+                Path(args.run),
+                args.name,
+                Path(args.models_dir),
+                Path(args.records_dir),
+                args.episodes,
+                args.seed,
+                args.envs,
+                args.note,
+                args.force,
+                args.noise_scale,
+                args.acting_pace,
+                args.outcome_candidates,
+            )
+        )
         for line in lines:
             print(json.dumps(line))
     except (ValueError, FileNotFoundError) as exc:
@@ -63,25 +71,77 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def ship(
-    run: Path,
-    name: str | None,
-    models_dir: Path,
-    episodes: int,
-    seed: int,
-    envs: list[str],
-    note: str = "",
-    noise_scale: float | None = None,
-    records_dir: Path = Path("records"),
-    force: bool = False,
-    acting_pace: list[float] | None = None,
-    outcome_candidates: int | None = None,
-) -> list[dict[str, Any]]:
-    """Record `run` in `records_dir`, ship its final checkpoint as `models_dir/name` if named; returns the reports.
+def _parser() -> argparse.ArgumentParser:
+    """The command line."""
+    parser = argparse.ArgumentParser(
+        prog="python -m training.ship", description=__doc__.splitlines()[0], formatter_class=HelpFormatter
+    )
+    parser.add_argument("--run", required=True, help="the finished run folder written by training.train (has last.* and best.*)")
+    parser.add_argument(
+        "--name", default=None, help="ship the final checkpoint as MODELS_DIR/NAME (e.g. flow, mse); omit to only record the run"
+    )
+    parser.add_argument("--models-dir", default="models", help="where shipped policies live")
+    parser.add_argument("--records-dir", default="records", help="where run records live")
+    parser.add_argument("--episodes", type=int, default=100, help="held-out episodes")
+    parser.add_argument("--seed", type=int, default=HELD_OUT_SEED, help="first held-out episode seed")
+    parser.add_argument("--envs", nargs="+", choices=ENVS, default=list(ENVS), help="envs to score in")
+    parser.add_argument(
+        "--noise-scale",
+        type=float,
+        default=None,
+        help="flow: set the sampling noise_scale of the run's final and best checkpoints first (chosen on non-held-out seeds)",
+    )
+    parser.add_argument(
+        "--acting-pace",
+        type=float,
+        nargs=4,
+        default=None,
+        metavar=("FAR", "NEAR", "RADIUS", "RAMP"),
+        help="flow with a pace input: set the pace it acts at by goal distance (policies.pace), like --noise-scale",
+    )
+    parser.add_argument(
+        "--outcome-candidates",
+        type=int,
+        default=None,
+        metavar="K",
+        help="flow with an outcome chooser: set how many candidate chunks it integrates, like --noise-scale",
+    )
+    parser.add_argument("--note", default="", help="what changed from the published recipe and why (stored in the card)")
+    parser.add_argument(
+        "--force", action="store_true", help="replace MODELS_DIR/NAME even if it scores better on the held-out seeds"
+    )
+    return parser
 
-    `noise_scale`, `acting_pace` and `outcome_candidates` (flow) are first set on the run's final and best checkpoints, so every
-    score and export uses them.
-    """
+
+@dataclass
+class ShipConfig:
+    """What `ship` records and ships (the command's options): `noise_scale`, `acting_pace` and `outcome_candidates` (flow)
+    are first set on the run's final and best checkpoints, so every score and export uses them."""
+
+    run: Path
+    name: str | None
+    models_dir: Path = Path("models")
+    records_dir: Path = Path("records")
+    episodes: int = 100
+    seed: int = HELD_OUT_SEED
+    envs: list[str] = field(default_factory=lambda: list(ENVS))
+    note: str = ""
+    force: bool = False
+    noise_scale: float | None = None
+    acting_pace: list[float] | None = None
+    outcome_candidates: int | None = None
+
+
+def ship(cfg: ShipConfig) -> list[dict[str, Any]]:
+    """Record `cfg.run` in `cfg.records_dir`, ship its final checkpoint as `models_dir/name` if named; returns the reports."""
+    run, name, models_dir, episodes, seed, envs = cfg.run, cfg.name, cfg.models_dir, cfg.episodes, cfg.seed, cfg.envs
+    noise_scale, acting_pace, outcome_candidates, note, force = (
+        cfg.noise_scale,
+        cfg.acting_pace,
+        cfg.outcome_candidates,
+        cfg.note,
+        cfg.force,
+    )
     check_finished(run)
     has_best = (run / "best.json").is_file()
     for checkpoint in ("last", "best") if has_best else ("last",):
@@ -91,7 +151,7 @@ def ship(
             set_acting_pace(run / checkpoint, acting_pace)
         if outcome_candidates is not None:
             set_outcome_candidates(run / checkpoint, outcome_candidates)
-    record = records_dir / run.name
+    record = cfg.records_dir / run.name
     extra = {"recipe_changes": note} if note else {}
     reports: list[dict[str, Any]] = []
     staging = None
@@ -108,7 +168,9 @@ def ship(
             card.update(name=name, run=str(record), reproduce=reproduce_commands(card, run, name))
             write_text_atomic(staged.with_suffix(".json"), json.dumps(card, indent=2, allow_nan=False) + "\n")
             export_onnx(staged)
-            final, frames = score_heldout(staged.with_suffix(".onnx"), models_dir / f"{name}.onnx", episodes, seed, envs, reports, "final", gif=True)
+            final, frames = score_heldout(
+                staged.with_suffix(".onnx"), models_dir / f"{name}.onnx", episodes, seed, envs, reports, "final", gif=True
+            )
             check_replacement(models_dir / name, final[envs[0]], envs[0], force)
         best = score_heldout(run / "best", run / "best", episodes, seed, envs, reports, "best")[0] if has_best else None
 
@@ -131,8 +193,10 @@ def check_finished(run: Path) -> dict[str, Any]:
     card = load_card(run / "last")
     target = card["config"].get("steps")
     if not card.get("finished", card["steps"] == target):
-        raise ValueError(f"{run} is not finished (its last checkpoint is at step {card['steps']:,} of {target:,}): "
-                         "continue it with its training command and --resume before shipping")
+        raise ValueError(
+            f"{run} is not finished (its last checkpoint is at step {card['steps']:,} of {target:,}): "
+            "continue it with its training command and --resume before shipping"
+        )
     return card
 
 
@@ -147,16 +211,21 @@ def check_replacement(stem: Path, new: dict[str, Any], env: str, force: bool) ->
     label = f"{new['mean_max_reward']:.3f} mean max reward, {100 * new['success_rate']:.0f} % success"
     if old is None or old.get("seeds") != new["seeds"]:
         seeds = "no held-out score" if old is None else f"seeds {old['seeds'][0]}..{old['seeds'][1]}"
-        raise ValueError(f"{stem} ({seeds} in {env}) cannot be compared with this run ({label}, seeds "
-                         f"{new['seeds'][0]}..{new['seeds'][1]}): not replaced; --force replaces it")
+        raise ValueError(
+            f"{stem} ({seeds} in {env}) cannot be compared with this run ({label}, seeds "
+            f"{new['seeds'][0]}..{new['seeds'][1]}): not replaced; --force replaces it"
+        )
     if old["mean_max_reward"] > new["mean_max_reward"]:
-        raise ValueError(f"{stem} scores {old['mean_max_reward']:.3f} mean max reward, {100 * old['success_rate']:.0f} % success "
-                         f"in {env} (seeds {new['seeds'][0]}..{new['seeds'][1]}), this run {label}: not replaced; "
-                         "--force replaces it, and without --name the run is only recorded")
+        raise ValueError(
+            f"{stem} scores {old['mean_max_reward']:.3f} mean max reward, {100 * old['success_rate']:.0f} % success "
+            f"in {env} (seeds {new['seeds'][0]}..{new['seeds'][1]}), this run {label}: not replaced; "
+            "--force replaces it, and without --name the run is only recorded"
+        )
 
 
-def write_record(run: Path, record: Path, final: dict[str, Any], best: dict[str, Any] | None, extra: dict[str, Any],
-                 keep_best_weights: bool) -> None:
+def write_record(
+    run: Path, record: Path, final: dict[str, Any], best: dict[str, Any] | None, extra: dict[str, Any], keep_best_weights: bool
+) -> None:
     """records/RUN: the final and best cards with their held-out scores, the learning curve, the compressed log."""
     if record.exists():
         shutil.rmtree(record)
@@ -194,8 +263,16 @@ def reproduce_commands(card: dict[str, Any], run: Path, name: str) -> list[str]:
     return [made or command_line(card["config"]), ship_command]
 
 
-def score_heldout(model: Path, label: Path, episodes: int, seed: int, envs: list[str], reports: list[dict[str, Any]],
-           checkpoint: str, gif: bool = False) -> tuple[dict[str, Any], list[Any]]:
+def score_heldout(
+    model: Path,
+    label: Path,
+    episodes: int,
+    seed: int,
+    envs: list[str],
+    reports: list[dict[str, Any]],
+    checkpoint: str,
+    gif: bool = False,
+) -> tuple[dict[str, Any], list[Any]]:
     """Held-out scores of `model` per env (reports appended, named `label`) and the first env's first-episode frames if `gif`."""
     scores, frames = {}, []
     policy = load_model(model)

@@ -46,10 +46,24 @@ def main(argv: list[str] | None = None) -> int:
 
 def train(cfg: TrainConfig) -> Run:
     """Run (or resume) one training as configured; returns its Run (folder in `.dir`)."""
-    from training.checkpoint import save_checkpoint, update_card
-
-    ctx, run = Distributed.start(), None
+    ctx, trainer = Distributed.start(), None
     try:
+        trainer = _Trainer(cfg, ctx)
+        step = trainer.loop()
+        trainer.finish(step)
+        ctx.barrier()
+        return trainer.run
+    finally:
+        if trainer is not None and trainer.run is not None:
+            trainer.run.close()  # give SIGINT back even when the run failed
+        ctx.stop()
+
+
+class _Trainer:
+    """One training's state: the policy, its optimizer and data order, the run folder; `loop` steps until done or stopped."""
+
+    def __init__(self, cfg: TrainConfig, ctx: Distributed) -> None:
+        self.cfg, self.ctx, self.run = cfg, ctx, None
         if cfg.batch_size % ctx.world_size:
             raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {ctx.world_size} DDP ranks")
         torch.set_num_threads(cfg.threads or max(1, (os.cpu_count() or 1) // ctx.world_size))
@@ -62,155 +76,211 @@ def train(cfg: TrainConfig) -> Run:
             from training.evaluate import env_factory
 
             env_factory(cfg.eval_env)()  # fail now, not after hours of training, if the env is missing
-
-        policy, data = _policy_and_data(cfg)
-        policy.train()
-        ema = WeightAverage(policy, cfg.ema_decay) if cfg.ema_decay else None
-        shipped = ema.module if ema else policy  # what is evaluated and saved as a checkpoint
-        model: nn.Module = _LossModule(policy)
+        self.policy, self.data = _policy_and_data(cfg)
+        self.policy.train()
+        self.ema = WeightAverage(self.policy, cfg.ema_decay) if cfg.ema_decay else None
+        self.shipped = self.ema.module if self.ema else self.policy  # what is evaluated and saved as a checkpoint
+        self.model: nn.Module = _LossModule(self.policy)
         if ctx.world_size > 1:
-            model = nn.parallel.DistributedDataParallel(model)
+            self.model = nn.parallel.DistributedDataParallel(self.model)
         # fused: 10-20% faster per step than foreach on CPU for these MLPs (measured)
-        optimizer = torch.optim.AdamW(policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
-        permutation_rng = torch.Generator().manual_seed(cfg.seed)  # same on every rank
-
+        self.optimizer = torch.optim.AdamW(self.policy.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, fused=True)
+        self.permutation_rng = torch.Generator().manual_seed(cfg.seed)  # same on every rank
         # every check that can fail has passed: only now may the run folder change
-        run = Run.start(cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite,
-                        is_main=ctx.is_main, may_change=RESUMABLE_CHANGES)
-        first_step, best_reward, order, batch_in_epoch = _restore(run, ctx, policy, optimizer, permutation_rng, ema)
-        if ctx.is_main:
-            print(f"world size: {ctx.world_size}  threads: {torch.get_num_threads()}  windows: {len(data)} "
-                  f"({data.demo_windows} demonstration, {len(data) - data.demo_windows} extra)", file=sys.stderr)
-            print(f"{cfg.policy} policy: {sum(p.numel() for p in policy.parameters())} parameters, "
-                  f"architecture {policy.architecture}", file=sys.stderr)
-
+        self.run = Run.start(
+            cfg.out_dir,
+            cfg.name,
+            cfg.to_dict(),
+            resume=cfg.resume,
+            overwrite=cfg.overwrite,
+            is_main=ctx.is_main,
+            may_change=RESUMABLE_CHANGES,
+        )
+        self.first_step, self.best_reward, self.order, self.batch_in_epoch = _restore(
+            self.run, ctx, self.policy, self.optimizer, self.permutation_rng, self.ema
+        )
+        self.batches_per_epoch = len(self.data) // cfg.batch_size
+        if self.order is None:
+            self.batch_in_epoch = self.batches_per_epoch  # forces a fresh permutation at the first step
         # kind, architecture, num_parameters and normalization (the policy's) are derived by save_checkpoint itself
-        card = {"name": cfg.policy, "config": cfg.to_dict()}
-        local_batch = cfg.batch_size // ctx.world_size
-        batches_per_epoch = len(data) // cfg.batch_size
-        bar = progress_bar(cfg.steps, first_step - 1, enabled=ctx.is_main and cfg.progress)
-
-        def save(step: int, evaluation: dict[str, Any] | None) -> None:
-            """The resumable state of `step` and the `last` checkpoint (not finished)."""
-            rng_states = ctx.gather(torch.get_rng_state())
-            if not ctx.is_main:
-                return
-            save_checkpoint(str(run.dir / "last"), shipped, **card, steps=step,
-                            wall_time_s=run.elapsed_s, evaluation=evaluation, finished=False)
-            optimizer_tensors, optimizer_json = pack_optimizer(optimizer)
-            tensors = {**{f"model.{k}": v for k, v in policy.state_dict().items()}, **optimizer_tensors,
-                       **({f"ema.{k}": v for k, v in ema.state_dict().items()} if ema else {}),
-                       **pack_rng({"permutation": permutation_rng}), "epoch_order": order,
-                       **{f"rng.rank{r}.torch": t for r, t in enumerate(rng_states) if r}}
-            run.save_state(step, tensors, {"optimizer": optimizer_json, "best_reward": best_reward,
-                                           "batch_in_epoch": batch_in_epoch, "world_size": ctx.world_size})
-            plot_learning_curve(run.records, run.dir / "learning_curve.png")
-
-        interval_start, interval_loss, interval_steps = time.perf_counter(), 0.0, 0
-        interval_eval_s = 0.0  # evaluation time inside the interval, kept out of ms_per_step
-        if order is None:
-            batch_in_epoch = batches_per_epoch  # forces a fresh permutation at the first step
-        step = first_step - 1
-        for step in range(first_step, cfg.steps + 1):
-            if batch_in_epoch == batches_per_epoch:
-                order = data.epoch_order(batches_per_epoch * cfg.batch_size, permutation_rng)
-                batch_in_epoch = 0
-            # each global batch is split in rank-sized slices: rank r takes slice r
-            idx = order.view(batches_per_epoch, cfg.batch_size)[batch_in_epoch, ctx.rank * local_batch : (ctx.rank + 1) * local_batch]
-            batch_in_epoch += 1
-
-            progress = (step - 1) / cfg.steps
-            lr = cfg.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
-            for group in optimizer.param_groups:
-                group["lr"] = lr
-            noise_std = state_noise_std(cfg, progress)
-            paces = None if data.paces is None else data.paces[idx]
-            loss = model(data.states[idx], data.chunks[idx], noise_std, data.prev_states[idx], paces)  # env units: the policy normalizes
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            if ema is not None:
-                ema.update(step)
-
-            loss_value = loss.item()
-            if not math.isfinite(loss_value):
-                raise ValueError(f"loss became {loss_value} at step {step}; lower --lr or check the data")
-            interval_loss += loss_value
-            interval_steps += 1
-            if bar is not None:
-                bar.update(1)
-                if step % 20 == 0:
-                    bar.set_postfix(loss=f"{loss_value:.4f}", refresh=False)
-
-            if step % cfg.log_every == 0 or step == cfg.steps:
-                ms = 1000 * (time.perf_counter() - interval_start - interval_eval_s) / interval_steps
-                mean_loss = ctx.mean(interval_loss / interval_steps)  # over all ranks' slices
-                run.log({"type": "train", "step": step, "loss": mean_loss, "lr": lr,
-                         "state_noise": noise_std, "ms_per_step": ms})
-                interval_loss, interval_steps, interval_eval_s = 0.0, 0, 0.0
-                interval_start = time.perf_counter()
-
-            evaluate_now = cfg.eval_every >= 0 and (
-                step == cfg.steps or (cfg.eval_every > 0 and step % cfg.eval_every == 0)
+        self.card = {"name": cfg.policy, "config": cfg.to_dict()}
+        if ctx.is_main:
+            print(
+                f"world size: {ctx.world_size}  threads: {torch.get_num_threads()}  windows: {len(self.data)} "
+                f"({self.data.demo_windows} demonstration, {len(self.data) - self.data.demo_windows} extra)",
+                file=sys.stderr,
             )
-            evaluation = None
-            if evaluate_now:
-                eval_start = time.perf_counter()
-                if ctx.is_main:
-                    try:
-                        with run.interruptible():  # a stop must not wait for a long evaluation
-                            evaluation = _evaluate(shipped, cfg, step)
-                    except RunStopped:
-                        pass  # this step's evaluation is lost; its weights are saved below
-                if evaluation is not None:
-                    run.log({"type": "eval", **evaluation})
-                    if best_reward is None or evaluation["mean_max_reward"] > best_reward:
-                        best_reward = evaluation["mean_max_reward"]
-                        save_checkpoint(str(run.dir / "best"), shipped, **card, steps=step,
-                                        wall_time_s=run.elapsed_s, evaluation=evaluation)
-                    if bar is not None:
-                        bar.set_postfix(loss=f"{loss_value:.4f}", eval=f"{evaluation['mean_max_reward']:.3f}")
-                ctx.barrier()
-                interval_eval_s += time.perf_counter() - eval_start
+            print(
+                f"{cfg.policy} policy: {sum(p.numel() for p in self.policy.parameters())} parameters, "
+                f"architecture {self.policy.architecture}",
+                file=sys.stderr,
+            )
 
-            stop = ctx.any(run.stop_requested)  # every rank must stop at the same step
+    def loop(self) -> int:
+        """Train from the first step until the last or a stop; returns the last step taken."""
+        cfg, ctx = self.cfg, self.ctx
+        self.bar = progress_bar(cfg.steps, self.first_step - 1, enabled=ctx.is_main and cfg.progress)
+        self.interval = _Interval()
+        step = self.first_step - 1
+        for step in range(self.first_step, cfg.steps + 1):
+            loss_value, lr, noise_std = self._step(step)
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                self.run.log({"type": "train", "step": step, **self.interval.record(ctx), "lr": lr, "state_noise": noise_std})
+            evaluate_now = cfg.eval_every >= 0 and (step == cfg.steps or (cfg.eval_every > 0 and step % cfg.eval_every == 0))
+            evaluation = self._evaluate(step, loss_value) if evaluate_now else None
+            stop = ctx.any(self.run.stop_requested)  # every rank must stop at the same step
             if step < cfg.steps and (stop or evaluate_now or (cfg.checkpoint_every and step % cfg.checkpoint_every == 0)):
-                save(step, evaluation or _last_eval(run.records))
+                self._save(step, evaluation or _last_eval(self.run.records))
             if stop:
                 break
+        if self.bar is not None:
+            self.bar.close()
+        return step
 
-        if bar is not None:
-            bar.close()
+    def _step(self, step: int) -> tuple[float, float, float]:
+        """One optimizer step on this rank's slice of the next global batch: (loss, learning rate, state noise)."""
+        cfg, data = self.cfg, self.data
+        if self.batch_in_epoch == self.batches_per_epoch:
+            self.order = data.epoch_order(self.batches_per_epoch * cfg.batch_size, self.permutation_rng)
+            self.batch_in_epoch = 0
+        # each global batch is split in rank-sized slices: rank r takes slice r
+        local = cfg.batch_size // self.ctx.world_size
+        rank = self.ctx.rank
+        idx = self.order.view(self.batches_per_epoch, cfg.batch_size)[self.batch_in_epoch, rank * local : (rank + 1) * local]
+        self.batch_in_epoch += 1
+        progress = (step - 1) / cfg.steps
+        lr = cfg.lr * 0.5 * (1.0 + math.cos(math.pi * progress))
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        noise_std = state_noise_std(cfg, progress)
+        paces = None if data.paces is None else data.paces[idx]
+        loss = self.model(data.states[idx], data.chunks[idx], noise_std, data.prev_states[idx], paces)  # env units
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        if self.ema is not None:
+            self.ema.update(step)
+        loss_value = loss.item()
+        if not math.isfinite(loss_value):
+            raise ValueError(f"loss became {loss_value} at step {step}; lower --lr or check the data")
+        self.interval.add(loss_value)
+        if self.bar is not None:
+            self.bar.update(1)
+            if step % 20 == 0:
+                self.bar.set_postfix(loss=f"{loss_value:.4f}", refresh=False)
+        return loss_value, lr, noise_std
+
+    def _evaluate(self, step: int, loss_value: float) -> dict[str, Any] | None:
+        """Rank 0's rollouts of the shipped weights (None where a stop cut them short); a new best is saved as `best`."""
+        eval_start = time.perf_counter()
+        evaluation = None
+        if self.ctx.is_main:
+            try:
+                with self.run.interruptible():  # a stop must not wait for a long evaluation
+                    evaluation = _evaluate(self.shipped, self.cfg, step)
+            except RunStopped:
+                pass  # this step's evaluation is lost; its weights are saved by the caller
+        if evaluation is not None:
+            self.run.log({"type": "eval", **evaluation})
+            if self.best_reward is None or evaluation["mean_max_reward"] > self.best_reward:
+                self.best_reward = evaluation["mean_max_reward"]
+                self._checkpoint("best", step, evaluation)
+            if self.bar is not None:
+                self.bar.set_postfix(loss=f"{loss_value:.4f}", eval=f"{evaluation['mean_max_reward']:.3f}")
+        self.ctx.barrier()
+        self.interval.eval_s += time.perf_counter() - eval_start
+        return evaluation
+
+    def _checkpoint(self, which: str, step: int, evaluation: dict[str, Any] | None, **fields: Any) -> None:
+        from policies.checkpoint import save_checkpoint
+
+        save_checkpoint(
+            str(self.run.dir / which),
+            self.shipped,
+            **self.card,
+            steps=step,
+            wall_time_s=self.run.elapsed_s,
+            evaluation=evaluation,
+            **fields,
+        )
+
+    def _save(self, step: int, evaluation: dict[str, Any] | None) -> None:
+        """The resumable state of `step` and the `last` checkpoint (not finished)."""
+        rng_states = self.ctx.gather(torch.get_rng_state())
+        if not self.ctx.is_main:
+            return
+        self._checkpoint("last", step, evaluation, finished=False)
+        optimizer_tensors, optimizer_json = pack_optimizer(self.optimizer)
+        tensors = {
+            **{f"model.{k}": v for k, v in self.policy.state_dict().items()},
+            **optimizer_tensors,
+            **({f"ema.{k}": v for k, v in self.ema.state_dict().items()} if self.ema else {}),
+            **pack_rng({"permutation": self.permutation_rng}),
+            "epoch_order": self.order,
+            **{f"rng.rank{r}.torch": t for r, t in enumerate(rng_states) if r},
+        }
+        self.run.save_state(
+            step,
+            tensors,
+            {
+                "optimizer": optimizer_json,
+                "best_reward": self.best_reward,
+                "batch_in_epoch": self.batch_in_epoch,
+                "world_size": self.ctx.world_size,
+            },
+        )
+        plot_learning_curve(self.run.records, self.run.dir / "learning_curve.png")
+
+    def finish(self, step: int) -> None:
+        """The finished `last` checkpoint and curve where the loop ran to its end, else how to resume."""
+        from policies.checkpoint import update_card
+
+        cfg, run = self.cfg, self.run
         if step == cfg.steps:
-            if ctx.is_main:
-                save_checkpoint(str(run.dir / "last"), shipped, **card, steps=cfg.steps,
-                                wall_time_s=run.elapsed_s, evaluation=_last_eval(run.records), finished=True)
+            if self.ctx.is_main:
+                self._checkpoint("last", cfg.steps, _last_eval(run.records), finished=True)
                 if (run.dir / "best.json").is_file():
                     update_card(run.dir / "best", finished=True)
                 plot_learning_curve(run.records, run.dir / "learning_curve.png")
                 print(f"done: {cfg.steps} steps in {run.elapsed_s:.0f} s; outputs in {run.dir}", file=sys.stderr)
             run.finish(cfg.steps)
-        elif ctx.is_main:
-            print(f"stopped by {run.stop_signal} at step {step} of {cfg.steps}; continue with the same command "
-                  f"and --resume (state in {run.dir})", file=sys.stderr)
-        ctx.barrier()
-        return run
-    finally:
-        if run is not None:
-            run.close()  # give SIGINT back even when the run failed
-        ctx.stop()
+        elif self.ctx.is_main:
+            print(
+                f"stopped by {run.stop_signal} at step {step} of {cfg.steps}; continue with the same command "
+                f"and --resume (state in {run.dir})",
+                file=sys.stderr,
+            )
+
+
+class _Interval:
+    """The losses and time since the last train record; evaluation time is kept out of ms_per_step."""
+
+    def __init__(self) -> None:
+        self.start, self.loss, self.steps, self.eval_s = time.perf_counter(), 0.0, 0, 0.0
+
+    def add(self, loss: float) -> None:
+        self.loss += loss
+        self.steps += 1
+
+    def record(self, ctx: Distributed) -> dict[str, float]:
+        """The interval's mean loss (over all ranks' slices) and ms per step; starts the next interval."""
+        ms = 1000 * (time.perf_counter() - self.start - self.eval_s) / self.steps
+        out = {"loss": ctx.mean(self.loss / self.steps), "ms_per_step": ms}
+        self.__init__()
+        return out
 
 
 def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
     """The policy to train (fresh and fitted on the demonstrations, or the --init checkpoint's) and its training set."""
-    from training.checkpoint import load_checkpoint
-    from training.data import training_set
-    from training.policies import build_policy
+    from policies.checkpoint import load_checkpoint
+    from policies.factory import build_policy
+    from training.data import ExtraData, training_set
 
-    extra = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
-    data = training_set(cfg.data, cfg.horizon, cfg.pad_episode_end, extra, human_weight=cfg.human_weight,
-                        policy_step_weight=cfg.policy_step_weight, extra_stride=cfg.extra_stride, pace=cfg.pace(),
-                        pace_copies=cfg.pace_copies, seed=cfg.seed)
+    extra_paths = tuple(filter(None, (path.strip() for path in cfg.extra_data.split(","))))
+    extra = ExtraData(extra_paths, cfg.human_weight, cfg.policy_step_weight, cfg.extra_stride)
+    data = training_set(
+        cfg.data, cfg.horizon, cfg.pad_episode_end, extra, pace=cfg.pace(), pace_copies=cfg.pace_copies, seed=cfg.seed
+    )
     if len(data) < cfg.batch_size:
         raise ValueError(f"{cfg.data} has {len(data)} windows, fewer than batch_size {cfg.batch_size}")
     if cfg.init:
@@ -231,8 +301,14 @@ def _policy_and_data(cfg: TrainConfig) -> tuple[nn.Module, Any]:
     return policy, data
 
 
-def _restore(run: Run, ctx: Distributed, policy: nn.Module, optimizer: torch.optim.Optimizer,
-             permutation_rng: torch.Generator, ema: WeightAverage | None) -> tuple[int, float | None, torch.Tensor | None, int]:
+def _restore(
+    run: Run,
+    ctx: Distributed,
+    policy: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    permutation_rng: torch.Generator,
+    ema: WeightAverage | None,
+) -> tuple[int, float | None, torch.Tensor | None, int]:
     """First step, best reward, epoch order and position from the saved state (fresh values without one)."""
     state = run.load_state()
     if state is None:
@@ -240,9 +316,9 @@ def _restore(run: Run, ctx: Distributed, policy: nn.Module, optimizer: torch.opt
     step, tensors, saved = state
     if saved["world_size"] != ctx.world_size:
         raise ValueError(f"{run.dir} ran on {saved['world_size']} ranks; resume it on as many, not {ctx.world_size}")
-    policy.load_state_dict({k[len("model."):]: v for k, v in tensors.items() if k.startswith("model.")})
+    policy.load_state_dict({k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")})
     if ema is not None:
-        ema.load_state_dict({k[len("ema."):]: v for k, v in tensors.items() if k.startswith("ema.")})
+        ema.load_state_dict({k[len("ema.") :]: v for k, v in tensors.items() if k.startswith("ema.")})
     unpack_optimizer(optimizer, tensors, saved["optimizer"])
     unpack_rng(tensors, {"permutation": permutation_rng})
     if ctx.rank:
@@ -268,14 +344,20 @@ class _LossModule(nn.Module):
         super().__init__()
         self.policy = policy
 
-    def forward(self, state: torch.Tensor, chunk: torch.Tensor, state_noise: float = 0.0,
-                prev_state: torch.Tensor | None = None, pace: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self,
+        state: torch.Tensor,
+        chunk: torch.Tensor,
+        state_noise: float = 0.0,
+        prev_state: torch.Tensor | None = None,
+        pace: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         return self.policy.compute_loss(state, chunk, state_noise, prev_state=prev_state, pace=pace)
 
 
 def _evaluate(policy: nn.Module, cfg: TrainConfig, step: int) -> dict[str, Any]:
+    from policies.base import ActingPolicy
     from training.evaluate import evaluate_policy
-    from training.policies import ActingPolicy
 
     policy.eval()
     try:

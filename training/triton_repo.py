@@ -16,7 +16,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from acting.card import Card
+from policies.card import Card
 
 __all__ = ["config_text", "validate_config", "write_config"]
 
@@ -39,16 +39,18 @@ def config_text(name: str, card: Card) -> str:
     def tensor(tensor_name: str, dims: list[int]) -> str:
         return f'  {{\n    name: "{tensor_name}"\n    data_type: TYPE_FP32\n    dims: [ {", ".join(map(str, dims))} ]\n  }}'
 
-    return "\n".join([
-        f'name: "{name}"',
-        'backend: "onnxruntime"',
-        f"max_batch_size: {MAX_BATCH_SIZE}",
-        "input [\n" + ",\n".join(tensor(n, d) for n, d in inputs) + "\n]",
-        "output [\n" + tensor("actions", chunk) + "\n]",
-        f"dynamic_batching {{\n  max_queue_delay_microseconds: {MAX_QUEUE_DELAY_US}\n}}",
-        "instance_group [\n  {\n    kind: KIND_CPU\n    count: 1\n  }\n]",
-        "",
-    ])
+    return "\n".join(
+        [
+            f'name: "{name}"',
+            'backend: "onnxruntime"',
+            f"max_batch_size: {MAX_BATCH_SIZE}",
+            "input [\n" + ",\n".join(tensor(n, d) for n, d in inputs) + "\n]",
+            "output [\n" + tensor("actions", chunk) + "\n]",
+            f"dynamic_batching {{\n  max_queue_delay_microseconds: {MAX_QUEUE_DELAY_US}\n}}",
+            "instance_group [\n  {\n    kind: KIND_CPU\n    count: 1\n  }\n]",
+            "",
+        ]
+    )
 
 
 def validate_config(folder: str | Path) -> Any:

@@ -4,7 +4,7 @@ Every policy owns a `Normalizer` (`policy.normalizer`); its loss and its acting 
 training and acting cannot convert differently. The statistics are buffers of the policy that its
 state_dict leaves out: the checkpoint's card carries them (`normalization`) and loading puts them back.
 
-This module imports only torch, numpy and the torch-free `acting.card` and `pusht.spec`.
+This module imports only torch, numpy and the torch-free `policies.card` and `pusht.spec`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from acting.card import NORMALIZATION_KEYS, check_normalization
+from policies.card import NORMALIZATION_KEYS, check_normalization
 from pusht.spec import ACTION_DIM, MIN_STD, STATE_DIM
 
 ACTION_FRAMES = ("absolute", "agent")
@@ -51,7 +51,9 @@ class Normalizer(nn.Module):
     def require(self) -> None:
         """ValueError unless the statistics are set."""
         if not self.is_set:
-            raise ValueError("the policy has no normalization yet: fit it (policy.normalizer.fit_demonstrations), set it (policy.normalizer.set) or load a checkpoint")
+            raise ValueError(
+                "the policy has no normalization yet: fit it (policy.normalizer.fit_demonstrations), set it (policy.normalizer.set) or load a checkpoint"
+            )
 
     def set(self, statistics: Any) -> "Normalizer":
         """Take the statistics of a card's `normalization` dict (lists, arrays or tensors) or of another Normalizer; returns self."""
@@ -81,7 +83,13 @@ class Normalizer(nn.Module):
         if len(states) == 0 or len(actions) == 0:
             raise ValueError("cannot fit a normalizer on no samples")
         return cls(states.shape[1], actions.shape[1], action_frame).set(
-            {"state_mean": states.mean(0), "state_std": states.std(0), "action_mean": actions.mean(0), "action_std": actions.std(0)})
+            {
+                "state_mean": states.mean(0),
+                "state_std": states.std(0),
+                "action_mean": actions.mean(0),
+                "action_std": actions.std(0),
+            }
+        )
 
     def fit_demonstrations(self, frame_states: Any, frame_actions: Any, window_states: Any, window_chunks: Any) -> "Normalizer":
         """Set the statistics of demonstrations: states over every frame; actions over every frame, or for the

@@ -1,7 +1,7 @@
 """Candidate start noises of a frozen flow: K fixed orthogonal maps of the one standard-normal `noise` input.
 
 Each map R_k keeps the noise standard normal, so the K candidates are K honest samples of the flow, and
-the exported graph keeps its `state` and `noise` inputs (the outcome chooser, training.outcome, picks
+the exported graph keeps its `state` and `noise` inputs (the outcome chooser, policies.chooser, picks
 among them). Imports only torch.
 """
 

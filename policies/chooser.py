@@ -7,7 +7,7 @@ smooth function of the chunk (shifted by 2 px, the coverage change correlates at
 physics looks the same in the block's frame wherever the block lies. So `OutcomeModel` learns there:
 the agent and the chunk's 12 targets relative to the block -> the block's displacement and rotation.
 Acting, `OutcomeSelector` has the flow integrate K candidates (K fixed orthogonal maps of the one
-`noise` input, as `training.selection`), offers each also stretched (faster), predicts where each
+`noise` input, as `policies.selection`), offers each also stretched (faster), predicts where each
 leaves the block, and keeps the one that leaves the tee's corners closest to the goal's. Nothing simulates the env at acting time; the exported
 graph keeps its `state` and `noise` inputs. Imports only torch (and pusht's geometry constants).
 """
@@ -21,13 +21,24 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from policies.features import tee_keypoints
+from policies.networks import silu_mlp
+from policies.selection import candidate_starts, orthogonal_maps
 from pusht.geometry import GOAL_POSE
 from pusht.spec import ACTION_HIGH, ACTION_LOW
-from training.features import tee_keypoints
-from training.networks import silu_mlp
-from training.selection import candidate_starts, orthogonal_maps
 
-__all__ = ["FEATURE_STATE", "FEATURE_TARGETS", "OutcomeModel", "OutcomeSelector", "agent_in_block_frame", "goal_corner_distance", "nearest", "pose_after", "stretch", "targets_in_block_frame"]
+__all__ = [
+    "FEATURE_STATE",
+    "FEATURE_TARGETS",
+    "OutcomeModel",
+    "OutcomeSelector",
+    "agent_in_block_frame",
+    "goal_corner_distance",
+    "nearest",
+    "pose_after",
+    "stretch",
+    "targets_in_block_frame",
+]
 
 DEFAULT_OUTCOME_DIMS = (512, 512, 512, 512)
 DEFAULT_OUTCOME_CANDIDATES = 16
@@ -61,8 +72,15 @@ class OutcomeModel(nn.Module):
         block, angle = state[:, 2:4], state[:, 4]
         cos, sin = torch.cos(angle), torch.sin(angle)
         agent = _to_block_frame(state[:, None, 0:2] - block[:, None], cos, sin).flatten(1)
-        return torch.cat([agent / _FRAME_SCALE, targets_in_block_frame(state, chunk), block / _ARENA_CENTER - 1.0,
-                          torch.stack([sin, cos], dim=1)], dim=1)
+        return torch.cat(
+            [
+                agent / _FRAME_SCALE,
+                targets_in_block_frame(state, chunk),
+                block / _ARENA_CENTER - 1.0,
+                torch.stack([sin, cos], dim=1),
+            ],
+            dim=1,
+        )
 
     def loss(self, state: torch.Tensor, chunk: torch.Tensor, end_state: torch.Tensor) -> torch.Tensor:
         """Smooth L1 between predicted and true pose change, in the block's frame and the targets' units."""
@@ -81,8 +99,13 @@ class OutcomeSelector(nn.Module):
     demonstrators who are slow (given 450 steps instead of 300 the chooser succeeds in 91 % of episodes, not 78 %), and
     the outcome model predicts where a stretched chunk leaves the block as well as a plain one."""
 
-    def __init__(self, chunk_shape: tuple[int, int], hidden_dims: Sequence[int] = DEFAULT_OUTCOME_DIMS,
-                 candidates: int = DEFAULT_OUTCOME_CANDIDATES, stretches: Sequence[float] = (1.0,)) -> None:
+    def __init__(
+        self,
+        chunk_shape: tuple[int, int],
+        hidden_dims: Sequence[int] = DEFAULT_OUTCOME_DIMS,
+        candidates: int = DEFAULT_OUTCOME_CANDIDATES,
+        stretches: Sequence[float] = (1.0,),
+    ) -> None:
         super().__init__()
         self.chunk_shape = tuple(chunk_shape)
         self.candidates = int(candidates)
@@ -97,7 +120,9 @@ class OutcomeSelector(nn.Module):
         """The K candidate starts [B, K, H, A] of standard-normal `noise` [B, H, A] (candidate 0 is noise_scale * noise)."""
         return candidate_starts(noise, self.rotations, noise_scale)
 
-    def candidate_chunks(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def candidate_chunks(
+        self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The K x S normalized candidate chunks [B, K * S, H, A] of `noise` from the flow's inputs `state_n` (the K flow
         chunks at each stretch in turn, the first K unstretched), and their clipped env-unit actions."""
         k, shape = self.candidates, self.chunk_shape
@@ -119,7 +144,9 @@ class OutcomeSelector(nn.Module):
         index = nearest(distance).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
         return torch.gather(chunks_n, 1, index).squeeze(1)
 
-    def scored_candidates(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def scored_candidates(
+        self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The normalized candidate chunks [B, K * S, H, A] of `noise` (as `candidate_chunks`) and their predicted goal distances [B, K * S]."""
         chunks_n, actions = self.candidate_chunks(flow, state_n, noise, num_steps)
         return chunks_n, self.distances(_env_state(flow, state_n), actions)
@@ -149,7 +176,7 @@ def nearest(distance: torch.Tensor) -> torch.Tensor:
 
 
 def goal_corner_distance(pose: torch.Tensor) -> torch.Tensor:
-    """Mean squared distance [B] (in training.features' units) of the tee's corners at poses [B, 3] to the goal's."""
+    """Mean squared distance [B] (in policies.features' units) of the tee's corners at poses [B, 3] to the goal's."""
     goal = torch.tensor([GOAL_POSE], dtype=pose.dtype, device=pose.device)
     return (tee_keypoints(pose) - tee_keypoints(goal)).pow(2).mean(dim=1)
 

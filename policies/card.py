@@ -1,6 +1,6 @@
 """The one reader of policy cards (NAME.json beside NAME.safetensors and NAME.onnx), torch-free.
 
-Training writes cards (`training.checkpoint`); evaluation, export, shipping and the service read them
+Training writes cards (`policies.checkpoint`); evaluation, export, shipping and the service read them
 here, with one set of rules, and take every shape past training from the `Card` it returns.
 """
 
@@ -15,11 +15,32 @@ from typing import Any
 
 from pusht.spec import ACTION_DIM, DEFAULT_HORIZON, DEFAULT_NUM_STEPS, POLICY_KINDS, STATE_DIM
 
-__all__ = ["CARD_FIELDS", "Card", "CardError", "MAX_CARD_BYTES", "MAX_NUM_STEPS", "NORMALIZATION_KEYS", "card_stem",
-           "check_normalization", "read_card", "require_regular_file"]
+__all__ = [
+    "CARD_FIELDS",
+    "Card",
+    "CardError",
+    "MAX_CARD_BYTES",
+    "MAX_NUM_STEPS",
+    "NORMALIZATION_KEYS",
+    "card_stem",
+    "check_normalization",
+    "read_card",
+    "require_regular_file",
+]
 
-CARD_FIELDS = ("name", "kind", "architecture", "num_parameters", "config", "normalization", "steps", "wall_time_s",
-               "evaluation", "git_commit", "onnx")
+CARD_FIELDS = (
+    "name",
+    "kind",
+    "architecture",
+    "num_parameters",
+    "config",
+    "normalization",
+    "steps",
+    "wall_time_s",
+    "evaluation",
+    "git_commit",
+    "onnx",
+)
 NORMALIZATION_KEYS = ("state_mean", "state_std", "action_mean", "action_std")
 MAX_CARD_BYTES = 16 << 20
 MAX_NUM_STEPS = 100

@@ -19,17 +19,18 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
-from acting.card import CardError, card_stem, read_card, validate_card
+from policies.base import ActingPolicy
+from policies.card import CardError, card_stem, read_card, validate_card
+from policies.factory import build_policy
+from policies.networks import count_parameters
 from pusht.spec import DEFAULT_NUM_STEPS, POLICY_KINDS
-from training.networks import count_parameters
-from training.policies import ActingPolicy, build_policy
 
 WEIGHTS_SUFFIX = ".safetensors"
 CARD_SUFFIX = ".json"
 
 
 CheckpointError = CardError
-"""A checkpoint file is missing, corrupt, or does not match its card (the one error of `acting.card`)."""
+"""A checkpoint file is missing, corrupt, or does not match its card (the one error of `policies.card`)."""
 
 
 def save_checkpoint(stem: str | Path, policy: torch.nn.Module, normalization: Any = None, **card_fields: Any) -> dict[str, Any]:
@@ -97,8 +98,10 @@ def load_checkpoint(stem: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
     missing = sorted(set(expected) - set(weights))
     unexpected = sorted(set(weights) - set(expected))
     if {"angle_mean", "angle_std"} & set(unexpected):
-        raise CheckpointError(f"{weights_path}: written before the policy owned its normalization (angle_mean/angle_std, copies of "
-                              f"the card's): convert it once with python scripts/convert_checkpoints.py {stem}")
+        raise CheckpointError(
+            f"{weights_path}: written before the policy owned its normalization (angle_mean/angle_std, copies of "
+            f"the card's): convert it once with python scripts/convert_checkpoints.py {stem}"
+        )
     if missing or unexpected:
         raise CheckpointError(
             f"{weights_path}: weights do not fit the card's {card['kind']} architecture (missing {missing[:5]}, unexpected {unexpected[:5]})"
@@ -125,7 +128,7 @@ def load_acting_policy(stem: str | Path, num_steps: int = DEFAULT_NUM_STEPS) -> 
 
 
 def load_card(stem: str | Path) -> dict[str, Any]:
-    """The validated card STEM.json as a dict (`acting.card.read_card`'s rules)."""
+    """The validated card STEM.json as a dict (`policies.card.read_card`'s rules)."""
     return read_card(checkpoint_stem(stem).with_suffix(CARD_SUFFIX)).data
 
 
@@ -154,7 +157,7 @@ def set_noise_scale(stem: str | Path, noise_scale: float) -> dict[str, Any]:
 
 
 def set_acting_pace(stem: str | Path, rule: list[float]) -> dict[str, Any]:
-    """Set the `acting_pace` rule [far, near, radius, ramp] (training.pace) of a flow with a pace input; returns the card."""
+    """Set the `acting_pace` rule [far, near, radius, ramp] (policies.pace) of a flow with a pace input; returns the card."""
     card = load_card(checkpoint_stem(stem))
     if not card["architecture"].get("pace_input"):
         raise ValueError(f"{checkpoint_stem(stem).with_suffix(CARD_SUFFIX)}: acting_pace applies to policies with a pace input")
@@ -164,14 +167,16 @@ def set_acting_pace(stem: str | Path, rule: list[float]) -> dict[str, Any]:
 def set_outcome_candidates(stem: str | Path, candidates: int) -> dict[str, Any]:
     """Set how many candidate chunks a flow's outcome chooser integrates; returns the card.
 
-    Its candidate maps come from a fixed seed (`training.selection.orthogonal_maps`: the first ones are the same for
+    Its candidate maps come from a fixed seed (`policies.selection.orthogonal_maps`: the first ones are the same for
     every count), so only those maps and the card change, never a learned weight."""
     stem = checkpoint_stem(stem)
     policy, card = load_checkpoint(stem)
     if policy.kind != "flow" or policy.outcome is None:
         raise ValueError(f"{stem.with_suffix(CARD_SUFFIX)}: outcome_candidates applies to flows with an outcome chooser")
     resized = build_policy("flow", **{**card["architecture"], "outcome_candidates": candidates})  # validates the count
-    missing, unexpected = resized.load_state_dict({k: v for k, v in policy.state_dict().items() if k != "outcome.rotations"}, strict=False)
+    missing, unexpected = resized.load_state_dict(
+        {k: v for k, v in policy.state_dict().items() if k != "outcome.rotations"}, strict=False
+    )
     if missing != ["outcome.rotations"] or unexpected:
         raise ValueError(f"{stem}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
     resized.normalizer.set(policy.normalizer)
@@ -202,7 +207,7 @@ def _rewrite_card(stem: Path, card: dict[str, Any]) -> dict[str, Any]:
 
 
 def checkpoint_stem(stem: str | Path) -> Path:
-    """`acting.card.card_stem` (DIR/NAME from DIR/NAME, .json, .onnx or .safetensors), refusing a path with no NAME."""
+    """`policies.card.card_stem` (DIR/NAME from DIR/NAME, .json, .onnx or .safetensors), refusing a path with no NAME."""
     path = card_stem(stem)
     if not path.name:
         raise CheckpointError(f"{stem!s}: not a checkpoint stem (expected DIR/NAME)")
@@ -218,7 +223,22 @@ def git_commit(cwd: str | Path | None = None) -> str:
         head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=where, capture_output=True, text=True, timeout=10)
         if head.returncode != 0:
             return "unknown"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ":(top)", ":(top,exclude)models", ":(top,exclude)records"], cwd=where, capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(
+            [
+                "git",
+                "status",
+                "--porcelain",
+                "--untracked-files=no",
+                "--",
+                ":(top)",
+                ":(top,exclude)models",
+                ":(top,exclude)records",
+            ],
+            cwd=where,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     commit = head.stdout.strip()
@@ -246,4 +266,3 @@ def _read_weights(path: Path) -> dict[str, torch.Tensor]:
         return load_file(str(path), device="cpu")
     except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
         raise CheckpointError(f"{path}: not a readable safetensors file: {exc}") from None
-
