@@ -18,6 +18,7 @@ WORKDIR /app
 # ONNX Runtime backend) and the service; no training code.
 COPY pyproject.toml README.md ./
 COPY pusht ./pusht
+COPY policies ./policies
 COPY acting ./acting
 COPY service ./service
 RUN pip install ".[serve]"

@@ -56,9 +56,15 @@ def sha256(path: Path) -> str:
 
 def freeze(stem: Path, path: Path) -> None:
     states = probe_states()
-    np.savez(path, states=states, seeds=np.asarray(SEEDS), onnx=actions(stem, "onnx", states),
-             torch=actions(stem, "torch", states), onnx_sha256=sha256(stem.with_suffix(".onnx")),
-             weights_sha256=sha256(stem.with_suffix(".safetensors")))
+    np.savez(
+        path,
+        states=states,
+        seeds=np.asarray(SEEDS),
+        onnx=actions(stem, "onnx", states),
+        torch=actions(stem, "torch", states),
+        onnx_sha256=sha256(stem.with_suffix(".onnx")),
+        weights_sha256=sha256(stem.with_suffix(".safetensors")),
+    )
 
 
 if __name__ == "__main__":

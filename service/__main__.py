@@ -64,6 +64,10 @@ def main(argv: list[str] | None = None) -> int:
         timeout_keep_alive=settings.keep_alive_s,  # type: ignore[arg-type]  # uvicorn takes seconds, float is fine
         timeout_graceful_shutdown=settings.shutdown_timeout_s,  # type: ignore[arg-type]
         h11_max_incomplete_event_size=settings.max_header_bytes,
+        # websocket frames bounded like HTTP bodies (closed with 1009 beyond), and no per-message compression, whose
+        # small frames would inflate past any limit checked after decompression
+        ws_max_size=settings.max_body_bytes,
+        ws_per_message_deflate=False,
     )
     return 0
 

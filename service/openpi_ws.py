@@ -19,7 +19,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
-from fastapi import APIRouter, WebSocket
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.responses import Response
 
 from service.batching import Batcher, Overloaded
@@ -101,26 +101,34 @@ def make_openpi_router(settings: Settings) -> APIRouter:
             await _deny(websocket, exc)
             return
         await websocket.accept()
-        await websocket.send_bytes(pack(metadata(batcher)))
-        prev_total_ms = None
-        while True:
-            message = await websocket.receive()
-            if message["type"] == "websocket.disconnect":
-                return
-            start = time.monotonic()
-            try:
-                reply = await _act(batcher, message, max_bytes)
-            except BadMessage as exc:
-                await websocket.send_text(json.dumps({"status": exc.status, "error": str(exc)}))
-                continue
-            infer_ms = 1e3 * (time.monotonic() - start)
-            reply["server_timing"] = (
-                {"infer_ms": infer_ms} if prev_total_ms is None else {"infer_ms": infer_ms, "prev_total_ms": prev_total_ms}
-            )
-            await websocket.send_bytes(pack(reply))
-            prev_total_ms = 1e3 * (time.monotonic() - start)
+        try:
+            await _serve(websocket, batcher, max_bytes)
+        except (WebSocketDisconnect, OSError):
+            return  # the client left while its answer was pending: nothing to answer, nothing to log
 
     return router
+
+
+async def _serve(websocket: WebSocket, batcher: Batcher, max_bytes: int) -> None:
+    """Metadata first, then one answer per message until the client closes."""
+    await websocket.send_bytes(pack(metadata(batcher)))
+    prev_total_ms = None
+    while True:
+        message = await websocket.receive()
+        if message["type"] == "websocket.disconnect":
+            return
+        start = time.monotonic()
+        try:
+            reply = await _act(batcher, message, max_bytes)
+        except BadMessage as exc:
+            await websocket.send_text(json.dumps({"status": exc.status, "error": str(exc)}))
+            continue
+        infer_ms = 1e3 * (time.monotonic() - start)
+        reply["server_timing"] = (
+            {"infer_ms": infer_ms} if prev_total_ms is None else {"infer_ms": infer_ms, "prev_total_ms": prev_total_ms}
+        )
+        await websocket.send_bytes(pack(reply))
+        prev_total_ms = 1e3 * (time.monotonic() - start)
 
 
 def metadata(batcher: Batcher) -> dict[str, Any]:

@@ -194,7 +194,7 @@ class _Session:
         except ValueError:
             raise _Refused(400, 'a message must be a JSON object, e.g. {"type": "hello"}') from None
         kind = raw.get("type") if isinstance(raw, dict) else None
-        if kind not in _MESSAGES:
+        if not isinstance(kind, str) or kind not in _MESSAGES:  # {"type": {}} is unhashable: not a lookup key
             raise _Refused(400, f"unknown message type {kind!r}; expected one of {sorted(_MESSAGES)}")
         try:
             message = _MESSAGES[kind].model_validate(raw)

@@ -27,7 +27,8 @@ def test_a_shipped_policy_acts_as_frozen(name: str, backend: str) -> None:
     frozen = np.load(freeze_policies.ARTIFACTS / f"{name}.npz")
     for suffix, key in ((".onnx", "onnx_sha256"), (".safetensors", "weights_sha256")):
         assert freeze_policies.sha256(stem.with_suffix(suffix)) == str(frozen[key]), (
-            f"{stem}{suffix} changed since it was frozen: run python scripts/freeze_policies.py after shipping")
+            f"{stem}{suffix} changed since it was frozen: run python scripts/freeze_policies.py after shipping"
+        )
     np.testing.assert_array_equal(frozen["states"], freeze_policies.probe_states())
     got = freeze_policies.actions(stem, backend, frozen["states"])
     # float32 kernels may round differently on another CPU; a changed policy moves actions by pixels, not by 1e-3

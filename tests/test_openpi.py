@@ -178,3 +178,33 @@ def test_other_key_headers_work(server: UvicornProcess) -> None:
     for headers in ({"X-API-Key": KEY}, {"Authorization": f"Bearer {KEY}"}):
         with connect(f"ws://{server.url.removeprefix('http://')}/openpi/flow", additional_headers=headers) as ws:
             assert unpack(ws.recv())["policy"] == "flow"
+
+
+def test_a_client_that_hangs_up_mid_request_leaves_no_traceback(server: UvicornProcess) -> None:
+    """The reply to a client gone while its chunk was computed is dropped quietly: no ASGI traceback in the log."""
+    url = f"ws://{server.url.removeprefix('http://')}/openpi/flow-chooser"  # the slowest policy: the reply is still pending
+    for i in range(5):
+        ws = connect(url, additional_headers={"X-API-Key": KEY})
+        ws.recv(timeout=10)  # metadata
+        ws.send(pack({"state": np.asarray(STATES[i % 3], np.float32), "seed": i}))
+        ws.close()
+    time.sleep(2.0)
+    assert "Traceback" not in server.output() and "Exception in ASGI application" not in server.output()
+    with connect(url, additional_headers={"X-API-Key": KEY}) as ws:  # and the server answers the next client
+        ws.recv(timeout=10)
+        ws.send(pack({"state": np.asarray(STATES[0], np.float32), "seed": 0}))
+        assert unpack(ws.recv(timeout=30))["actions"].shape == (12, 2)
+
+
+def test_frames_are_bounded_like_bodies_and_not_compressed(server: UvicornProcess) -> None:
+    """python -m service closes a frame over PUSHT_MAX_BODY_BYTES with 1009 and offers no per-message compression."""
+    from websockets.exceptions import ConnectionClosed
+
+    url = f"ws://{server.url.removeprefix('http://')}/openpi/mse"
+    with connect(url, additional_headers={"X-API-Key": KEY}, compression="deflate") as ws:
+        assert ws.response.headers.get("Sec-WebSocket-Extensions") is None  # compression refused
+        ws.recv(timeout=10)
+        ws.send(b"\x00" * (2 << 20))
+        with pytest.raises(ConnectionClosed) as closed:
+            ws.recv(timeout=10)
+    assert closed.value.rcvd is not None and closed.value.rcvd.code == 1009

@@ -154,6 +154,8 @@ def test_viewer_bad_messages_get_4xx_errors_and_the_session_lives_on(server):
         assert ask(ws, {"type": "fly"})["status"] == 400
         assert ask(ws, {"type": "hello", "key": "k" * 10000})["status"] == 413
         assert ask(ws, [1, 2])["status"] == 400
+        for kind in ({}, [1], None, 3):  # an unhashable or non-string type is an unknown type, not a crash
+            assert ask(ws, {"type": kind})["status"] == 400, kind
         for bad in ({"seed": -1}, {"seed": 2**63}, {"seed": "3"}, {"fps": 0}, {"fps": 1e6}, {"extra": 1}, {"policy": 5}):
             error = ask(ws, {"type": "start", "policy": "flow", "seed": 1, **bad})
             assert error["type"] == "error" and error["status"] == 422, (bad, error)
