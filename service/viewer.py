@@ -78,11 +78,15 @@ def viewer_assets_dir() -> Path:
     return Path(__file__).parent / "viewer_static"
 
 
+AUTH_DEADLINE_S = 5.0
+"""A socket of a service with an API key has this long to send its key, else it is closed (it holds no session slot)."""
+
+
 def make_viewer_router(settings: Settings) -> APIRouter:
     """The viewer's page and websocket routes, with their session limit and worker thread."""
     router = APIRouter()
     expected_key = settings.api_key.get_secret_value().encode() if settings.api_key else None
-    sessions = {"live": 0}
+    slots = _Slots(settings.viewer_max_sessions)
     # Env steps take ~0.05 ms: one thread for every session keeps them off the event loop.
     executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="viewer-env")
 
@@ -100,38 +104,42 @@ def make_viewer_router(settings: Settings) -> APIRouter:
     @router.websocket("/viewer/ws")
     async def viewer_socket(ws: WebSocket) -> None:
         await ws.accept()
+        session = _Session(ws, settings, expected_key, executor, slots)
         try:
             if not _same_origin(ws):
                 raise _Refused(403, "the page's origin differs from this service's host", close=True)
             if settings.viewer_max_sessions == 0:
                 raise _Refused(503, "the viewer is off on this service (PUSHT_VIEWER_MAX_SESSIONS=0)", close=True)
-            if sessions["live"] >= settings.viewer_max_sessions:
-                raise _Refused(
-                    503,
-                    f"{sessions['live']} viewer sessions are open (PUSHT_VIEWER_MAX_SESSIONS="
-                    f"{settings.viewer_max_sessions}); close one or retry later",
-                    close=True,
-                )
+            if session.authorized:  # a socket that still owes its key takes a slot only once it gives it
+                session.claim_slot()
         except _Refused as exc:
             await _send_error(ws, exc)
             await ws.close(code=4000 + exc.status)
             return
-        sessions["live"] += 1
         try:
-            await _Session(ws, settings, expected_key, executor).run()
+            await session.run()
         except WebSocketDisconnect:
             pass
         finally:
-            sessions["live"] -= 1
+            session.release_slot()
 
     return router
+
+
+class _Slots:
+    """The open authorized viewer sessions, at most `limit`."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit, self.live = limit, 0
 
 
 class _Session:
     """One page's websocket: reads its messages on a task, steps its episode at the asked rate."""
 
-    def __init__(self, ws: WebSocket, settings: Settings, expected_key: bytes | None, executor: ThreadPoolExecutor) -> None:
-        self.ws, self.settings, self.executor = ws, settings, executor
+    def __init__(
+        self, ws: WebSocket, settings: Settings, expected_key: bytes | None, executor: ThreadPoolExecutor, slots: _Slots
+    ) -> None:
+        self.ws, self.settings, self.executor, self.slots, self.has_slot = ws, settings, executor, slots, False
         self.authorized = expected_key is None or _header_key_ok(ws, expected_key)
         self.expected_key = expected_key
         self.episode: Episode | None = None
@@ -140,14 +148,32 @@ class _Session:
         self.pointer: tuple[float, float] | None = None  # set while the button is held on the canvas
         self.inbox: asyncio.Queue[str | None] = asyncio.Queue(maxsize=256)
 
+    def claim_slot(self) -> None:
+        slots = self.slots
+        if slots.live >= slots.limit:
+            raise _Refused(
+                503,
+                f"{slots.live} viewer sessions are open (PUSHT_VIEWER_MAX_SESSIONS={slots.limit}); close one or retry later",
+                close=True,
+            )
+        slots.live += 1
+        self.has_slot = True
+
+    def release_slot(self) -> None:
+        if self.has_slot:
+            self.slots.live -= 1
+            self.has_slot = False
+
     async def run(self) -> None:
         reader = asyncio.ensure_future(self._read())
         loop = asyncio.get_running_loop()
-        last_heard = loop.time()
+        opened = last_heard = loop.time()
         try:
             while True:
                 stepping = self._can_step()
                 deadline = self.next_step if stepping else last_heard + self.settings.viewer_idle_s
+                if not self.authorized:
+                    deadline = min(deadline, opened + AUTH_DEADLINE_S)
                 try:
                     text = await asyncio.wait_for(self.inbox.get(), timeout=max(0.0, deadline - loop.time()))
                 except TimeoutError:
@@ -155,12 +181,11 @@ class _Session:
                 if text is None:
                     return  # the page went away
                 if not text and not stepping:
-                    await _send_error(self.ws, _Refused(408, f"idle for {self.settings.viewer_idle_s:g} s: session closed"))
-                    await self.ws.close(code=4408)
+                    await self._close_idle()
                     return
-                last_heard = loop.time()  # a message, or a playing episode: not idle
                 try:
                     await (self._handle(text) if text else self._step())
+                    last_heard = loop.time()  # an accepted message, or a playing episode: not idle; junk is
                 except _Refused as exc:
                     await _send_error(self.ws, exc)
                     if exc.close:
@@ -168,6 +193,14 @@ class _Session:
                         return
         finally:
             reader.cancel()
+
+    async def _close_idle(self) -> None:
+        if not self.authorized:
+            refused = _Refused(401, f'no {{"type": "hello", "key": KEY}} within {AUTH_DEADLINE_S:g} s: session closed')
+        else:
+            refused = _Refused(408, f"idle for {self.settings.viewer_idle_s:g} s: session closed")
+        await _send_error(self.ws, refused)
+        await self.ws.close(code=4000 + refused.status)
 
     async def _read(self) -> None:
         try:
@@ -221,6 +254,7 @@ class _Session:
             if not given or not hmac.compare_digest(given, self.expected_key):
                 raise _Refused(401, 'missing or wrong API key: send it as {"type": "hello", "key": KEY}', close=True)
             self.authorized = True
+            self.claim_slot()
         service = self.ws.app.state.service
         if not service.ready:
             raise _Refused(503, "policies are still loading; retry in a second", close=True)

@@ -230,3 +230,48 @@ def test_viewer_honours_the_api_key():
         for header in ({"X-API-Key": KEY}, {"Authorization": f"Bearer {KEY}"}):
             with connect(ws_url(server), additional_headers=header) as ws:  # the /act headers work as well
                 assert ask(ws, {"type": "start", "policy": "mse", "seed": 1})["type"] == "state"
+
+
+def test_keyless_sockets_hold_no_slot_and_are_closed_at_the_auth_deadline():
+    """With an API key, sockets that never send it neither take the one session slot nor stay past AUTH_DEADLINE_S,
+    however much junk they send; junk does not extend a keyed session's idle time either."""
+    from service.viewer import AUTH_DEADLINE_S
+
+    env = {
+        "PUSHT_MODELS_DIR": str(SHIPPED_MODELS),
+        "PUSHT_API_KEY": KEY,
+        "PUSHT_VIEWER_MAX_SESSIONS": "1",
+        "PUSHT_VIEWER_IDLE_S": "1.5",
+    }
+    with UvicornProcess(env) as server:
+        junk = [connect(ws_url(server)) for _ in range(4)]
+        opened = time.monotonic()
+        for ws in junk:
+            assert ask(ws, {})["status"] == 400
+        keyed, hello = session(server, key=KEY)
+        with keyed:
+            assert hello["type"] == "hello"  # the keyless sockets hold no slot
+            started = time.monotonic()
+            while True:  # junk every 0.3 s: still closed as idle after PUSHT_VIEWER_IDLE_S
+                try:
+                    keyed.send("not json")
+                except ConnectionClosed:
+                    pass  # closed while we slept: its 408 is still to be read
+                answer = json.loads(keyed.recv(timeout=5))
+                if answer["status"] == 408:
+                    break
+                time.sleep(0.3)
+            assert time.monotonic() - started < 4
+        for ws in junk:
+            closed = None
+            while closed is None:
+                try:
+                    ws.send("{}")
+                except ConnectionClosed:
+                    pass  # closed already: its 401 is still to be read
+                answer = json.loads(ws.recv(timeout=10))
+                closed = answer if answer["status"] == 401 else None
+            assert closed is not None and "within" in closed["detail"], closed
+            assert time.monotonic() - opened < AUTH_DEADLINE_S + 3
+            with pytest.raises(ConnectionClosed):
+                ws.recv(timeout=5)
