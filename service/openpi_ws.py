@@ -11,7 +11,6 @@ the handshake needs `Authorization: Api-Key KEY` (as openpi sends it), `X-API-Ke
 
 from __future__ import annotations
 
-import hmac
 import json
 import logging
 import time
@@ -23,7 +22,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from fastapi.responses import Response
 
 from service.batching import Batcher, Overloaded
-from service.request_input import ServiceError, request_headers
+from service.request_input import ServiceError, check_key, request_headers
 from service.schemas import MAX_SEED
 from service.settings import STATE_LIMIT, Settings
 from service.state import ServiceState
@@ -150,15 +149,7 @@ def _admit(websocket: WebSocket, service: ServiceState, policy: str, expected: b
     """The policy's batcher if the handshake may go on; else ServiceError (401, 403, 404, 503)."""
     headers = request_headers(websocket.scope, (b"x-api-key", b"authorization", b"origin"))
     if expected is not None:
-        scheme, _, token = headers.get(b"authorization", "").partition(" ")
-        given = token.strip() if scheme.lower() in ("api-key", "bearer") else headers.get(b"x-api-key")
-        if not given or not hmac.compare_digest(given.encode("latin-1"), expected):
-            raise ServiceError(
-                401,
-                "missing or wrong API key: send it as 'Authorization: Api-Key KEY' (openpi-client's api_key), "
-                "'X-API-Key: KEY' or 'Authorization: Bearer KEY'",
-                {"WWW-Authenticate": "Api-Key"},
-            )
+        check_key(headers, expected)
     if b"origin" in headers:  # browsers always send Origin on websockets, which CORS does not protect
         raise ServiceError(403, "websockets from web pages (with an Origin header) are not served on /openpi")
     if not service.ready:

@@ -68,18 +68,22 @@ def request_headers(scope: Scope, wanted: tuple[bytes, ...] | frozenset[bytes]) 
     return {name: value.decode("latin-1") for name, value in scope["headers"] if name in wanted}
 
 
-def check_key(headers: dict[bytes, str], expected: bytes) -> None:
-    """Raise 401 unless the headers carry `expected` as X-API-Key or a bearer token."""
+KEY_HELP = "send it as 'X-API-Key: KEY', 'Authorization: Bearer KEY' or 'Authorization: Api-Key KEY' (openpi-client's)"
+
+
+def key_matches(headers: dict[bytes, str], expected: bytes) -> bool:
+    """The one rule of every route (HTTP and websocket): X-API-Key if sent, else Authorization's Bearer or Api-Key token."""
     given = headers.get(b"x-api-key")
     if given is None:
         scheme, _, token = headers.get(b"authorization", "").partition(" ")
-        given = token.strip() if scheme.lower() == "bearer" else None
-    if not given or not hmac.compare_digest(given.encode("latin-1"), expected):
-        raise ServiceError(
-            401,
-            "missing or wrong API key: send it as 'X-API-Key: KEY' or 'Authorization: Bearer KEY'",
-            {"WWW-Authenticate": "Bearer"},
-        )
+        given = token.strip() if scheme.lower() in ("bearer", "api-key") else None
+    return bool(given) and hmac.compare_digest(given.encode("latin-1"), expected)
+
+
+def check_key(headers: dict[bytes, str], expected: bytes) -> None:
+    """Raise 401 unless the headers carry `expected` by `key_matches`' rule."""
+    if not key_matches(headers, expected):
+        raise ServiceError(401, f"missing or wrong API key: {KEY_HELP}", {"WWW-Authenticate": "Bearer"})
 
 
 async def read_body(receive: Receive, declared: str | None, limit: int, timeout: float) -> bytes:

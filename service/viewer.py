@@ -23,6 +23,7 @@ from fastapi.responses import FileResponse
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from service.batching import Overloaded
+from service.request_input import key_matches, request_headers
 from service.settings import Settings
 from service.viewer_episode import Episode, goal_polygons, save_episode
 
@@ -324,13 +325,8 @@ def _headers(ws: WebSocket) -> dict[str, str]:
 
 
 def _header_key_ok(ws: WebSocket, expected: bytes) -> bool:
-    """The /act check: the key as X-API-Key or as a bearer token (non-browser clients can send headers)."""
-    headers = _headers(ws)
-    given = headers.get("x-api-key")
-    if given is None:
-        scheme, _, token = headers.get("authorization", "").partition(" ")
-        given = token.strip() if scheme.lower() == "bearer" else None
-    return bool(given) and hmac.compare_digest(given.encode("latin-1"), expected)
+    """The key sent in the handshake's headers, by every route's rule (non-browser clients can send headers)."""
+    return key_matches(request_headers(ws.scope, (b"x-api-key", b"authorization")), expected)
 
 
 def _same_origin(ws: WebSocket) -> bool:
