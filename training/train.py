@@ -13,6 +13,7 @@ every rank trains on its own slice of each global batch; only rank 0 logs, evalu
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import sys
@@ -51,11 +52,14 @@ def train(cfg: TrainConfig) -> Run:
         trainer = _Trainer(cfg, ctx)
         step = trainer.loop()
         trainer.finish(step)
-        ctx.barrier()
+        ctx.barrier()  # no rank tears down gloo while another still talks to it
         return trainer.run
     finally:
         if trainer is not None and trainer.run is not None:
             trainer.run.close()  # give SIGINT back even when the run failed
+        # DDP's reducer must go before its process group: freed after it, gloo can abort the process at exit
+        trainer = None
+        gc.collect()
         ctx.stop()
 
 
