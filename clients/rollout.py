@@ -35,6 +35,7 @@ if importlib.util.find_spec("pusht") is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pusht.gif import FPS, annotated_frame
 from pusht.gif import write_gif as _write_gif
+from pusht.results import add_output_arguments
 from pusht.rollout import RolloutSummary, card_id, check_output_path, episode_seeds, run_episodes, write_episode_records
 from pusht.spec import HELD_OUT_SEED
 
@@ -293,18 +294,7 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         help="actions of each chunk executed open loop (default: the whole chunk, the policy's horizon in GET /policies)",
     )
-    parser.add_argument(
-        "--out",
-        default=None,
-        metavar="FILE",
-        help="write one JSON line per episode (seed, max_reward, success, length, policy, card) to FILE",
-    )
-    parser.add_argument(
-        "--gif",
-        default=None,
-        metavar="FILE",
-        help="write the first episode as an animated GIF (real speed, step/coverage/success caption) to FILE",
-    )
+    add_output_arguments(parser)
     parser.add_argument("--api-key", default=None, help="sent as the X-API-Key header when the service requires a key")
     parser.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS", help="per-request timeout in seconds")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")

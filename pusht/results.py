@@ -142,6 +142,22 @@ def write_episode_records(path: str | Path, summary: RolloutSummary, policy: str
     Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
+def add_output_arguments(parser: Any) -> None:
+    """`--out FILE` and `--gif FILE` on an argparse parser: what a rollout writes besides its summary."""
+    parser.add_argument(
+        "--out",
+        default=None,
+        metavar="FILE",
+        help="write one JSON line per episode (seed, max_reward, success, length, policy, card) to FILE",
+    )
+    parser.add_argument(
+        "--gif",
+        default=None,
+        metavar="FILE",
+        help="write the first episode as an animated GIF (real speed, step/coverage/success caption) to FILE",
+    )
+
+
 def check_output_path(flag: str, path: str | Path) -> Path:
     """`path` as a Path once its folder exists and is writable; ValueError naming `flag` otherwise (checked before a rollout)."""
     path = Path(path)

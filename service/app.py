@@ -133,8 +133,9 @@ async def _lifespan(settings: Settings, metrics: Metrics, problems: list[str], a
 def _configure_logs(settings: Settings) -> None:
     if not protocol.ENTRY_POINT:
         log.warning(
-            "started without `python -m service`: idle and slow connections, connection count and shutdown "
-            "time are bounded only by the server's own flags (see the README's security model)"
+            "started without `python -m service`: idle and slow connections, connection count, shutdown time and "
+            "websocket frames (size, compression) are bounded only by the server's own flags, and requests that are not "
+            "HTTP get text, not JSON (see docs/service.md)"
         )
     if not settings.access_log:
         access = logging.getLogger("uvicorn.access")

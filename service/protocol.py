@@ -4,7 +4,8 @@ Plain uvicorn lets a connection that never finishes its headers (idle, or one by
 forever, buffers headers of any size, and accepts connections until file descriptors run out. This
 subclass closes a connection whose request headers do not complete within PUSHT_HEADER_TIMEOUT_S,
 answers 431 once the unfinished headers exceed PUSHT_MAX_HEADER_BYTES (before buffering more), and
-answers 503 at once to connections beyond PUSHT_MAX_CONNECTIONS.
+answers 503 at once to connections beyond PUSHT_MAX_CONNECTIONS; a request it cannot parse gets
+uvicorn's 400 as JSON, like every other error of the service.
 """
 
 from __future__ import annotations
@@ -21,12 +22,12 @@ ENTRY_POINT = False
 """Set by `python -m service`, so the app can warn when it runs without these limits."""
 
 
-def _raw_response(status: int, reason: str, detail: str) -> bytes:
+def _raw_response(status: int, reason: str, detail: str, retry: bool = False) -> bytes:
     body = json.dumps({"detail": detail}).encode()
-    return (
-        f"HTTP/1.1 {status} {reason}\r\ncontent-type: application/json\r\ncontent-length: {len(body)}\r\n"
-        "connection: close\r\nretry-after: 1\r\n\r\n"
-    ).encode() + body
+    head = f"HTTP/1.1 {status} {reason}\r\ncontent-type: application/json\r\ncontent-length: {len(body)}\r\nconnection: close\r\n"
+    if retry:
+        head += "retry-after: 1\r\n"
+    return (head + "\r\n").encode() + body
 
 
 def hardened_protocol(max_header_bytes: int, header_timeout_s: float, max_connections: int) -> type[HttpToolsProtocol]:
@@ -37,7 +38,7 @@ def hardened_protocol(max_header_bytes: int, header_timeout_s: float, max_connec
         "max_connections": max_connections,
         "too_big": _raw_response(431, "Request Header Fields Too Large", f"request headers exceed {max_header_bytes} bytes"),
         "too_many": _raw_response(
-            503, "Service Unavailable", f"too many open connections (limit {max_connections}); retry later"
+            503, "Service Unavailable", f"too many open connections (limit {max_connections}); retry later", retry=True
         ),
     }
     return type("HardenedProtocol", (HardenedProtocol,), limits)
@@ -79,6 +80,11 @@ class HardenedProtocol(HttpToolsProtocol):
         if self._in_head and self._head_bytes > self.max_header_bytes and not self.transport.is_closing():
             self.transport.write(self.too_big)
             self.transport.close()
+
+    def send_400_response(self, msg: str) -> None:
+        """uvicorn's answer to bytes that are not HTTP/1.1 (then it closes the connection), with a JSON body."""
+        self.transport.write(_raw_response(400, "Bad Request", f"{msg.rstrip('.')}: not a valid HTTP/1.1 request"))
+        self.transport.close()
 
     def on_headers_complete(self) -> None:
         self._in_head = False

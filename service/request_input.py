@@ -163,13 +163,17 @@ def _deadlines(timeout: float) -> _Deadlines:
     return deadlines
 
 
+# The rest of a refused body is never read: the connection closes after the answer.
+_CLOSE = {"Connection": "close"}
+
+
 async def _read_body(receive: Receive, declared: str | None, limit: int) -> bytes:
     """The body, or 413 as soon as it exceeds `limit` bytes (declared or streamed, e.g. chunked)."""
     if declared is not None:
         if not declared.isdigit():
-            raise ServiceError(400, f"invalid Content-Length header {declared!r}")
+            raise ServiceError(400, f"invalid Content-Length header {declared!r}", _CLOSE)
         if int(declared) > limit:
-            raise ServiceError(413, f"request body of {int(declared)} bytes exceeds the limit of {limit} bytes")
+            raise ServiceError(413, f"request body of {int(declared)} bytes exceeds the limit of {limit} bytes", _CLOSE)
     chunks = []
     size = 0
     more = True
@@ -180,7 +184,7 @@ async def _read_body(receive: Receive, declared: str | None, limit: int) -> byte
         chunk = message.get("body", b"")
         size += len(chunk)
         if size > limit:
-            raise ServiceError(413, f"request body exceeds the limit of {limit} bytes")
+            raise ServiceError(413, f"request body exceeds the limit of {limit} bytes", _CLOSE)
         chunks.append(chunk)
         more = message.get("more_body", False)
     return b"".join(chunks)

@@ -133,6 +133,19 @@ class _Slots:
     def __init__(self, limit: int) -> None:
         self.limit, self.live = limit, 0
 
+    def claim(self) -> None:
+        """Take a slot, or refuse the session with a 503 when all are taken."""
+        if self.live >= self.limit:
+            raise _Refused(
+                503,
+                f"{self.live} viewer sessions are open (PUSHT_VIEWER_MAX_SESSIONS={self.limit}); close one or retry later",
+                close=True,
+            )
+        self.live += 1
+
+    def release(self) -> None:
+        self.live -= 1
+
 
 class _Session:
     """One page's websocket: reads its messages on a task, steps its episode at the asked rate."""
@@ -150,19 +163,12 @@ class _Session:
         self.inbox: asyncio.Queue[str | None] = asyncio.Queue(maxsize=256)
 
     def claim_slot(self) -> None:
-        slots = self.slots
-        if slots.live >= slots.limit:
-            raise _Refused(
-                503,
-                f"{slots.live} viewer sessions are open (PUSHT_VIEWER_MAX_SESSIONS={slots.limit}); close one or retry later",
-                close=True,
-            )
-        slots.live += 1
+        self.slots.claim()
         self.has_slot = True
 
     def release_slot(self) -> None:
         if self.has_slot:
-            self.slots.live -= 1
+            self.slots.release()
             self.has_slot = False
 
     async def run(self) -> None:

@@ -196,6 +196,45 @@ def test_the_body_deadline_is_a_408_but_a_shutdown_still_cancels() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("chunked", [False, True], ids=["declared", "chunked"])
+def test_a_413_closes_the_connection_without_reading_the_rest(server: UvicornProcess, chunked: bool) -> None:
+    """A body over the limit gets its 413 and the connection closes at once, though the client has not sent the rest."""
+    if chunked:
+        head = b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n"
+        first = b"%x\r\n%s\r\n" % (1_100_000, b" " * 1_100_000)  # more than PUSHT_MAX_BODY_BYTES, and no last chunk
+    else:
+        head = b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 5000000\r\n\r\n"
+        first = b'{"policy": "mse", "states": ['
+    with socket.create_connection(("127.0.0.1", server.port), timeout=5) as sock:
+        sock.sendall(head + first)
+        start, answer = time.monotonic(), b""
+        try:
+            while chunk := sock.recv(65536):
+                answer += chunk
+        except ConnectionResetError:
+            pass  # closed with the client's unread bytes still queued: a reset, after the answer
+        closed_after = time.monotonic() - start
+    assert answer.startswith(b"HTTP/1.1 413"), answer[:200]
+    head_out, _, body = answer.partition(b"\r\n\r\n")
+    assert b"connection: close" in head_out.lower() and "limit" in json.loads(body)["detail"]
+    assert closed_after < 1.5, f"the connection stayed open {closed_after:.1f} s after the 413"  # the body deadline is 2 s
+
+
+@pytest.mark.slow
+def test_unparseable_requests_get_json_400(server: UvicornProcess) -> None:
+    """Bytes that are not HTTP/1.1 get a 400 and a closed connection: JSON under `python -m service`, uvicorn's text under
+    plain uvicorn (which the app cannot change; it warns at startup)."""
+    for junk in (b"GARBAGE\r\n\r\n", b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Length: 5\r\nContent-Length: 7\r\n\r\n"):
+        answer = _raw(server.port, junk)
+        assert answer.startswith(b"HTTP/1.1 400"), answer[:200]
+        head, _, body = answer.partition(b"\r\n\r\n")
+        if server.entry == "service":
+            assert b"content-type: application/json" in head.lower() and "HTTP/1.1" in json.loads(body)["detail"]
+        else:
+            assert b"text/plain" in head.lower()
+
+
+@pytest.mark.slow
 def test_bodies_that_are_not_json_get_415(server: UvicornProcess) -> None:
     """A cross-site form post (text/plain, form, multipart) or a body without a type never reaches a policy."""
     body = json.dumps({"policy": "mse", "state": STATE}).encode()

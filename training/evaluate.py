@@ -28,6 +28,7 @@ import numpy as np
 from acting import Policy, load_policy, read_card, rollout_act
 from pusht.gif import FPS, annotated_frame
 from pusht.gif import write_gif as _write_gif
+from pusht.results import add_output_arguments
 from pusht.rollout import RolloutSummary, card_id, check_output_path, episode_seeds, run_episodes, write_episode_records
 from pusht.spec import HELD_OUT_SEED, TRAIN_EVAL_SEED
 from training.cli import HelpFormatter
@@ -125,18 +126,7 @@ def _parser() -> argparse.ArgumentParser:
 def _output_arguments(parser: argparse.ArgumentParser) -> None:
     """The episode limit and what the run writes besides its JSON line."""
     parser.add_argument("--max-steps", type=int, default=300, help="episode step limit")
-    parser.add_argument(
-        "--out",
-        default=None,
-        metavar="FILE",
-        help="write one JSON line per episode (seed, max_reward, success, length, policy, card) to FILE",
-    )
-    parser.add_argument(
-        "--gif",
-        default=None,
-        metavar="FILE",
-        help="write the first episode as an animated GIF (real speed, step/coverage/success caption) to FILE",
-    )
+    add_output_arguments(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
 
 

@@ -135,24 +135,12 @@ class ShipConfig:
 def ship(cfg: ShipConfig) -> list[dict[str, Any]]:
     """Record `cfg.run` in `cfg.records_dir`, ship its final checkpoint as `models_dir/name` if named; returns the reports."""
     run, name, models_dir, episodes, seed, envs = cfg.run, cfg.name, cfg.models_dir, cfg.episodes, cfg.seed, cfg.envs
-    noise_scale, acting_pace, outcome_candidates, note, force = (
-        cfg.noise_scale,
-        cfg.acting_pace,
-        cfg.outcome_candidates,
-        cfg.note,
-        cfg.force,
-    )
     check_finished(run)
     has_best = (run / "best.json").is_file()
     for checkpoint in ("last", "best") if has_best else ("last",):
-        if noise_scale is not None:
-            set_noise_scale(run / checkpoint, noise_scale)
-        if acting_pace is not None:
-            set_acting_pace(run / checkpoint, acting_pace)
-        if outcome_candidates is not None:
-            set_outcome_candidates(run / checkpoint, outcome_candidates)
+        _apply_acting_settings(run / checkpoint, cfg)
     record = cfg.records_dir / run.name
-    extra = {"recipe_changes": note} if note else {}
+    extra = {"recipe_changes": cfg.note} if cfg.note else {}
     reports: list[dict[str, Any]] = []
     staging = None
     try:
@@ -171,7 +159,7 @@ def ship(cfg: ShipConfig) -> list[dict[str, Any]]:
             final, frames = score_heldout(
                 staged.with_suffix(".onnx"), models_dir / f"{name}.onnx", episodes, seed, envs, reports, "final", gif=True
             )
-            check_replacement(models_dir / name, final[envs[0]], envs[0], force)
+            check_replacement(models_dir / name, final[envs[0]], envs[0], cfg.force)
         best = score_heldout(run / "best", run / "best", episodes, seed, envs, reports, "best")[0] if has_best else None
 
         write_record(run, record, final, best, extra, keep_best_weights=name is not None)
@@ -184,6 +172,16 @@ def ship(cfg: ShipConfig) -> list[dict[str, Any]]:
         if staging is not None:
             shutil.rmtree(staging, ignore_errors=True)
     return reports
+
+
+def _apply_acting_settings(stem: Path, cfg: ShipConfig) -> None:
+    """Write the ship stage's acting settings (those it sets) into the checkpoint's card."""
+    if cfg.noise_scale is not None:
+        set_noise_scale(stem, cfg.noise_scale)
+    if cfg.acting_pace is not None:
+        set_acting_pace(stem, cfg.acting_pace)
+    if cfg.outcome_candidates is not None:
+        set_outcome_candidates(stem, cfg.outcome_candidates)
 
 
 def check_finished(run: Path) -> dict[str, Any]:

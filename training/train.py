@@ -57,8 +57,7 @@ def train(cfg: TrainConfig) -> Run:
     finally:
         if trainer is not None and trainer.run is not None:
             trainer.run.close()  # give SIGINT back even when the run failed
-        # DDP's reducer must go before its process group: freed after it, gloo can abort the process at exit
-        trainer = None
+        trainer = None  # DDP's reducer goes before its process group: freed after it, gloo can abort at exit
         gc.collect()
         ctx.stop()
 
