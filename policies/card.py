@@ -131,14 +131,15 @@ class Card:
 
     def network_evaluations(self, num_steps: int | None = None) -> int:
         """Network evaluations per chunk: 1 for mse; a flow's step count, and with an outcome chooser over K candidates at
-        S stretches K times that plus the K x S outcome-model passes."""
+        S stretches K times that plus the K x S outcome-model passes (and as many value passes, with a value)."""
         if self.kind != "flow":
             return 1
         steps = num_steps or self.num_steps
         if self.architecture.get("outcome_dims") is None:
             return steps
         candidates = int(self.architecture.get("outcome_candidates", 16))
-        return candidates * (steps + len(self.architecture.get("outcome_stretches", [1.0])))
+        scored = len(self.architecture.get("outcome_stretches", [1.0])) * (2 if self.architecture.get("value_dims") else 1)
+        return candidates * (steps + scored)
 
 
 def card_stem(path: str | Path) -> Path:

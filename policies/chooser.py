@@ -32,12 +32,14 @@ __all__ = [
     "FEATURE_TARGETS",
     "OutcomeModel",
     "OutcomeSelector",
+    "ValueModel",
     "agent_in_block_frame",
     "goal_corner_distance",
     "nearest",
     "pose_after",
     "stretch",
     "targets_in_block_frame",
+    "value_cost",
 ]
 
 DEFAULT_OUTCOME_DIMS = (512, 512, 512, 512)
@@ -46,6 +48,8 @@ _FRAME_SCALE = 100.0  # px: agent and targets relative to the block, to order 1
 _ARENA_CENTER = 256.0  # px: the block's own position (walls), to about [-1, 1]
 # The targets' units (px, px, rad): a push moves the block by some px and some hundredths of a radian.
 _POSE_SCALE = (10.0, 10.0, 0.1)
+DEFAULT_VALUE_DIMS = (256, 256, 256)
+VALUE_FLOOR = 1e-4  # the least value a cost is taken of (about 9 tau from success)
 TIE_MARGIN = 1e-3  # relative: a candidate replaces the flow's own sample only if predicted this much closer to the goal
 
 
@@ -92,6 +96,31 @@ class OutcomeModel(nn.Module):
         return F.smooth_l1_loss(self.net(self.features(state, chunk)), target, beta=0.1)
 
 
+class ValueModel(nn.Module):
+    """How soon the chooser succeeds from env-unit states [B, 5]: a regression of exp(-steps to success / tau) (0 for a
+    failure), fitted on its own episodes (training.value_fit)."""
+
+    def __init__(self, hidden_dims: Sequence[int] = DEFAULT_VALUE_DIMS) -> None:
+        super().__init__()
+        self.net = silu_mlp(16, hidden_dims, 1)
+
+    def forward(self, state: torch.Tensor) -> torch.Tensor:
+        """The value [B] of each state."""
+        return self.net(self.features(state)).squeeze(1)
+
+    @staticmethod
+    def features(state: torch.Tensor) -> torch.Tensor:
+        """[B, 16]: the tee's corners relative to the goal's, the agent in the arena and in the block's frame."""
+        goal = torch.tensor([GOAL_POSE], dtype=state.dtype, device=state.device)
+        corners = tee_keypoints(state[:, 2:5]) - tee_keypoints(goal)
+        return torch.cat([corners, state[:, 0:2] / _ARENA_CENTER - 1.0, agent_in_block_frame(state)], dim=1)
+
+
+def value_cost(value: torch.Tensor) -> torch.Tensor:
+    """-log of values [N] floored at VALUE_FLOOR: about the steps to success over tau, >= 0 as `nearest` needs."""
+    return -torch.log(torch.clamp(value, VALUE_FLOOR, 1.0))
+
+
 class OutcomeSelector(nn.Module):
     """The outcome model, K orthogonal candidate maps of the start noise and S stretches of each chunk; `choose` picks among K x S.
 
@@ -105,6 +134,7 @@ class OutcomeSelector(nn.Module):
         hidden_dims: Sequence[int] = DEFAULT_OUTCOME_DIMS,
         candidates: int = DEFAULT_OUTCOME_CANDIDATES,
         stretches: Sequence[float] = (1.0,),
+        value_dims: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         self.chunk_shape = tuple(chunk_shape)
@@ -113,6 +143,7 @@ class OutcomeSelector(nn.Module):
         self.stretches = tuple(float(s) for s in stretches)
         self.choices = self.candidates * len(self.stretches)
         self.model = OutcomeModel(self.chunk_shape[0], hidden_dims)
+        self.value = ValueModel(value_dims) if value_dims is not None else None
         self.register_buffer("rotations", orthogonal_maps(self.candidates, self.chunk_shape[0] * self.chunk_shape[1]))
 
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
@@ -139,35 +170,39 @@ class OutcomeSelector(nn.Module):
         return torch.cat(every_n, dim=1), torch.cat(every, dim=1)
 
     def best_chunk(self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int) -> torch.Tensor:
-        """The normalized candidate chunk [B, H, A] whose predicted outcome leaves the block closest to the goal."""
-        chunks_n, distance = self.scored_candidates(flow, state_n, noise, num_steps)
-        index = nearest(distance).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
+        """The normalized candidate chunk [B, H, A] of least predicted cost (`cost`)."""
+        chunks_n, cost = self.scored_candidates(flow, state_n, noise, num_steps)
+        index = nearest(cost).reshape(-1, 1, 1, 1).expand(-1, 1, *self.chunk_shape)
         return torch.gather(chunks_n, 1, index).squeeze(1)
 
     def scored_candidates(
         self, flow: nn.Module, state_n: torch.Tensor, noise: torch.Tensor, num_steps: int
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The normalized candidate chunks [B, K * S, H, A] of `noise` (as `candidate_chunks`) and their predicted goal distances [B, K * S]."""
+        """The normalized candidate chunks [B, K * S, H, A] of `noise` (as `candidate_chunks`) and their predicted costs [B, K * S]."""
         chunks_n, actions = self.candidate_chunks(flow, state_n, noise, num_steps)
-        return chunks_n, self.distances(_env_state(flow, state_n), actions)
+        return chunks_n, self.costs(_env_state(flow, state_n), actions)
 
-    def goal_distance(self, state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
-        """[B]: how far (`goal_corner_distance`) the model predicts env-unit chunks [B, H, A] leave the block from states [B, S]."""
-        return goal_corner_distance(self.model(state, chunk))
+    def cost(self, state: torch.Tensor, chunk: torch.Tensor) -> torch.Tensor:
+        """[B]: the cost of env-unit chunks [B, H, A] from states [B, S]: how far (`goal_corner_distance`) the model predicts
+        they leave the block, or with a value, the `value_cost` of the end state it predicts."""
+        pose = self.model(state, chunk)
+        if self.value is None:
+            return goal_corner_distance(pose)
+        return value_cost(self.value(torch.cat([chunk[:, -1], pose], dim=1)))
 
-    def distances(self, state: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
-        """`goal_distance` [B, K * S] of each of the chunks [B, K * S, H, A] (env units) from states [B, S]."""
+    def costs(self, state: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
+        """`cost` [B, K * S] of each of the chunks [B, K * S, H, A] (env units) from states [B, S]."""
         k = self.choices
         states = state.unsqueeze(1).expand(-1, k, -1).reshape(-1, state.shape[1])
-        return self.goal_distance(states, chunks.reshape(-1, *self.chunk_shape)).reshape(-1, k)
+        return self.cost(states, chunks.reshape(-1, *self.chunk_shape)).reshape(-1, k)
 
     def choose(self, state: torch.Tensor, chunks: torch.Tensor) -> torch.Tensor:
-        """Index [B] of the chunk among [B, K * S, H, A] (env units) whose predicted end pose is closest to the goal (0 on a near tie)."""
-        return nearest(self.distances(state, chunks))
+        """Index [B] of the chunk among [B, K * S, H, A] (env units) of least predicted cost (0 on a near tie)."""
+        return nearest(self.costs(state, chunks))
 
 
 def nearest(distance: torch.Tensor) -> torch.Tensor:
-    """Index [B] of the least of the candidates' predicted goal distances [B, C], 0 (the flow's own sample) on a near tie."""
+    """Index [B] of the least of the candidates' predicted costs [B, C] (>= 0), 0 (the flow's own sample) on a near tie."""
     best = distance.argmin(dim=1)
     # Chunks that do not reach the block tie up to float noise, and float noise must not choose (ONNX Runtime and
     # torch round differently): unless a candidate is clearly better, the flow's own sample (candidate 0) plays.

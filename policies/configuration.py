@@ -29,6 +29,7 @@ FLOW_ARCH_KEYS = MSE_ARCH_KEYS + (
     "outcome_dims",
     "outcome_candidates",
     "outcome_stretches",
+    "value_dims",
 )
 ARCH_KEYS = FLOW_ARCH_KEYS  # every key some kind accepts; each kind checks its own subset
 _VARIANT_DEFAULTS = {
@@ -41,6 +42,7 @@ _VARIANT_DEFAULTS = {
     "outcome_dims": None,
     "outcome_candidates": 16,
     "outcome_stretches": [1.0],
+    "value_dims": None,
     "prev_state": False,
     "pace_input": False,
     "acting_pace": None,
@@ -109,7 +111,7 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not 0 <= scale <= 10:
             raise ValueError(f"noise_scale must be a number in [0, 10], got {scale!r}")
         variants["noise_scale"] = float(scale)
-    for key in ("outcome_dims",):
+    for key in ("outcome_dims", "value_dims"):
         dims = variants.get(key)
         if dims is None:
             continue
@@ -121,6 +123,8 @@ def _check_variants(**variants: Any) -> dict[str, Any]:
         ):
             raise ValueError(f"{key} must be null or a non-empty list of positive ints, got {dims!r}")
         variants[key] = [int(w) for w in dims]
+    if variants.get("value_dims") is not None and variants.get("outcome_dims") is None:
+        raise ValueError("value_dims needs outcome_dims: the value ranks the end states the outcome model predicts")
     k = variants.get("outcome_candidates", 16)
     if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= 256:
         raise ValueError(f"outcome_candidates must be an int in [1, 256], got {k!r}")

@@ -60,6 +60,7 @@ class FlowPolicy(ChunkPolicy):
                 self._arch["outcome_dims"],
                 self._arch["outcome_candidates"],
                 self._arch["outcome_stretches"],
+                self._arch["value_dims"],
             )
 
     def forward(self, state_n: torch.Tensor, x_t: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

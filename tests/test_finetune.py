@@ -194,3 +194,56 @@ def test_a_reused_name_is_refused_and_a_stopped_run_resumes(tmp_path: Path) -> N
     assert [r["step"] for r in records if r["type"] == "train"] == list(range(1, 301))  # no step lost or repeated
     assert [r["step"] for r in records if r["type"] == "resume"] == [stopped_at]
     assert load_card(tmp_path / "r" / "last")["finished"]
+
+
+def test_a_value_fit_on_an_outcome_chooser_ranks_by_value_and_exports(tmp_path: Path) -> None:
+    """--algo value starts from an outcome chooser (kept as it is), labels its own episodes and fits the value; the
+    chooser then ranks by it, in torch and ONNX alike, and the chooser's other weights do not move."""
+    from training.value_fit import value_labels
+
+    chooser = finetune(_tiny(tmp_path, iterations=1, eval_every=0)).dir / "last"
+    with pytest.raises(ValueError, match="starts from an outcome chooser"):
+        finetune(_tiny(tmp_path, name="bad", algo="value"))
+    cfg = _tiny(
+        tmp_path,
+        name="v",
+        algo="value",
+        init=str(chooser),
+        iterations=2,
+        eval_every=2,
+        value_dims="16",
+        value_episodes=3,
+        value_max_steps=24,
+        value_updates=5,
+        value_tau=10.0,
+        candidates=16,
+    )
+    run = finetune(cfg).dir
+    card = load_card(run / "last")
+    arch = card["architecture"]
+    assert arch["value_dims"] == [16] and arch["outcome_dims"] == [32] and arch["outcome_candidates"] == 4  # as the init's
+    records = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    train = [r for r in records if r["type"] == "train"]
+    assert [r["labels"] for r in train] == [72, 144]  # 3 episodes x 24 steps (none succeeds at random) per iteration
+    tuned, _ = load_checkpoint(run / "last")
+    base, _ = load_checkpoint(chooser)
+    for name, tensor in base.state_dict().items():
+        assert torch.equal(tensor, tuned.state_dict()[name]), name
+    assert tuned.outcome.value is not None
+    export_onnx(run / "last", run / "last.onnx")
+    acting = load_acting_policy(run / "last")
+    rng = np.random.default_rng(0)
+    states = (rng.uniform(100, 400, (5, 5)) * [1, 1, 1, 1, 0.01]).astype(np.float32)
+    noise = rng.standard_normal((5, 12, 2)).astype(np.float32)
+    session = ort.InferenceSession(str(run / "last.onnx"), providers=["CPUExecutionProvider"])
+    got = session.run(["actions"], {"state": states, "noise": noise})[0]
+    with torch.no_grad():
+        want = acting(torch.from_numpy(states), torch.from_numpy(noise)).numpy()
+    np.testing.assert_allclose(got, want, atol=1e-3)
+
+    class Episodes:  # two episodes of 3 steps: one succeeds at its end, one fails
+        episodes = [type("E", (), {"seed": 1, "success": True})(), type("E", (), {"seed": 2, "success": False})()]
+        trajectories = [type("T", (), {"seed": s, "states": np.zeros((3, 5))})() for s in (1, 2)]
+
+    _, values = value_labels(Episodes, tau=10.0)
+    np.testing.assert_allclose(values, [np.exp(-0.3), np.exp(-0.2), np.exp(-0.1), 0, 0, 0], rtol=1e-6)

@@ -137,7 +137,7 @@ def test_a_rerun_is_cached_and_a_changed_stage_reruns_with_its_successors(smoke:
     changed.write_text(text.replace("critic_lr = 0.0005", "critic_lr = 0.0004"))
     assert changed.read_text() != text
     statuses = _statuses(_recipe(changed, smoke))
-    assert statuses == {"imitation": "cached", "outcome": "cached", "outcome-stretch": "ran", "ship": "ran"}
+    assert statuses == {"imitation": "cached", "outcome": "cached", "outcome-stretch": "ran", "value": "ran", "ship": "ran"}
 
 
 def test_every_shipped_card_cites_its_recipe_and_names_no_missing_path() -> None:

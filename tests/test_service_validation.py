@@ -270,3 +270,23 @@ def test_the_single_state_shortcut_accepts_exactly_what_the_request_model_accept
         assert fields == (req.policy, req.state, req.seed, req.num_steps), text
         assert [type(v) for v in req.state] == [float] * 5 and all(float(a) == b for a, b in zip(fields[1], req.state)), text
     assert shortcut_taken >= 5
+
+
+def test_batched_answers_serialized_slice_by_slice_are_orjsons_bytes() -> None:
+    """service.act serializes a large batch in slices (turns of the loop between them): the bytes are orjson's of the whole."""
+    import asyncio
+
+    import numpy as np
+    import orjson
+
+    from service.act import ROWS_PER_SLICE, _actions_json
+
+    rng = np.random.default_rng(0)
+    for rows in (1, ROWS_PER_SLICE, ROWS_PER_SLICE + 1, 3 * ROWS_PER_SLICE + 7):
+        actions = (rng.random((rows, 12, 2)) * 512).astype(np.float32)
+        whole = orjson.dumps(actions, option=orjson.OPT_SERIALIZE_NUMPY)
+        assert asyncio.run(_actions_json(actions)) == whole, rows
+        assert asyncio.run(_actions_json(actions[::2])) == orjson.dumps(
+            np.ascontiguousarray(actions[::2]), option=orjson.OPT_SERIALIZE_NUMPY
+        )
+        assert asyncio.run(_actions_json(actions[0])) == orjson.dumps(actions[0], option=orjson.OPT_SERIALIZE_NUMPY)

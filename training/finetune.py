@@ -5,7 +5,9 @@
 
 `training.outcome_fit` fits a one-chunk model of the block on simulated lookaheads of the flow's own
 candidate chunks (each also at `--stretches`, faster); the served flow then plays the candidate it
-predicts closest to the goal. `--init` may be such a chooser, whose model the fit goes on fitting. The
+predicts closest to the goal. `--init` may be such a chooser, whose model the fit goes on fitting; with
+`--algo value` (`training.value_fit`) the chooser's value of time is fitted on its own episodes, and the
+chooser then plays the candidate whose predicted end state it values most. The
 flow's weights never change. One decision is one 12-action chunk executed open loop in `num_envs` envs
 (`training.chunk_env`), on training seeds disjoint from every evaluation and held-out range. Periodic
 evaluation uses `training.evaluate` on seeds 400000.. (never held out). Each checkpoint is a flow
@@ -27,6 +29,7 @@ from training.evaluate import evaluate_policy
 from training.finetune_config import RESUMABLE_CHANGES, FinetuneConfig, parse_config
 from training.outcome_fit import FlowChooser, OutcomeFit
 from training.run import Run, RunError, RunStopped, pack_rng, unpack_rng
+from training.value_fit import ValueFit
 
 __all__ = ["finetune", "main"]
 
@@ -79,7 +82,7 @@ class _FineTuning:
         require_state_only(base_card, cfg.init, "fine-tuning")
         self.agent = FlowChooser(base, base_card, cfg)
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        self.algorithm = OutcomeFit(self.agent, cfg, self.generator)
+        self.algorithm = (ValueFit if cfg.algo == "value" else OutcomeFit)(self.agent, cfg, self.generator)
         self.run = Run.start(
             cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite, may_change=RESUMABLE_CHANGES
         )

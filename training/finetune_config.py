@@ -16,7 +16,7 @@ PROG = "python -m training.finetune"
 # fields that do not change what a run computes, so --resume accepts new values
 RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_every")
 # Noise-space PPO (DSRL) and a Q-critic picking start noises were tried and dropped (docs/findings.md).
-ALGOS = ("outcome",)
+ALGOS = ("outcome", "value")
 
 
 @dataclass
@@ -31,7 +31,8 @@ class FinetuneConfig:
     )
     algo: str = option(
         "outcome",
-        "what is fitted: outcome (a one-chunk model of the block that picks the best of --candidates chunks)",
+        "what is fitted: outcome (a one-chunk model of the block that picks the best of --candidates chunks); value (the "
+        "chooser's value of time, by policy iteration on its own episodes; --init must be an outcome chooser)",
         choices=ALGOS,
     )
     name: str = option("flow-outcome", "run name; outputs go to OUT_DIR/NAME")
@@ -51,6 +52,11 @@ class FinetuneConfig:
     updates_per_decision: int = option(16, "gradient updates after each decision step of all envs")
     candidates: int = option(16, "candidates chosen from at each decision")
     label_envs: int = option(32, "envs whose state is labelled at each decision step")
+    value_dims: str = option("256,256,256", "value: hidden widths of the value model (comma-separated)")
+    value_tau: float = option(100.0, "value: a state's label is exp(-steps to success / tau), 0 in a failed episode")
+    value_episodes: int = option(1024, "value: episodes played by the current chooser per iteration")
+    value_max_steps: int = option(600, "value: step limit of those episodes (past 300, so slow successes are labelled too)")
+    value_updates: int = option(12_000, "value: minibatches of regression per iteration (learning rate annealed to 0)")
     flow_num_steps: int = option(10, "Euler steps of the frozen flow")
     train_seed_start: int = option(10_000_000, "first training episode seed (episodes use consecutive seeds)")
     eval_every: int = option(50, "evaluate (and checkpoint) every N iterations (0: only at the end)")
@@ -87,6 +93,9 @@ class FinetuneConfig:
             "label_envs",
             "checkpoint_every",
             "candidates",
+            "value_episodes",
+            "value_max_steps",
+            "value_updates",
         )
         for name in positive:
             if getattr(self, name) < 1:
@@ -99,12 +108,19 @@ class FinetuneConfig:
             raise ValueError("eval_every, train_seed_start, eval_seed and seed must be >= 0")
         if not 0 <= self.explore <= 1:
             raise ValueError(f"explore must be in [0, 1], got {self.explore}")
+        if not self.value_tau > 0:
+            raise ValueError(f"value_tau must be > 0, got {self.value_tau}")
         self.outcome_dims_list()
+        self.value_dims_list()
         self.stretches_list()
 
     def outcome_dims_list(self) -> list[int]:
         """`outcome_dims` as a list of widths."""
         return _widths("outcome_dims", self.outcome_dims)
+
+    def value_dims_list(self) -> list[int]:
+        """`value_dims` as a list of widths."""
+        return _widths("value_dims", self.value_dims)
 
     def stretches_list(self) -> list[float]:
         """`stretches` as a list of floats."""
@@ -131,7 +147,8 @@ def parse_config(argv: list[str] | None = None) -> FinetuneConfig:
     parser = build_parser(
         FinetuneConfig,
         PROG,
-        "Fine-tune a flow beyond imitation, its weights frozen: fit a one-chunk outcome model that chooses among its chunks.",
+        "Fine-tune a flow beyond imitation, its weights frozen: fit a one-chunk outcome model that chooses among its chunks, "
+        "or that chooser's value of time.",
     )
     args = parser.parse_args(argv)
     try:

@@ -62,17 +62,7 @@ class FlowChooser:
         from policies.base import ActingPolicy
         from policies.factory import build_policy
 
-        arch = base_card["architecture"]
-        # An outcome chooser may start another outcome fit (its model warm, its stretches and candidates as configured).
-        if arch.get("outcome_dims") is not None and list(arch["outcome_dims"]) != cfg.outcome_dims_list():
-            raise ValueError(
-                f"{cfg.init}: its outcome chooser has outcome_dims {arch['outcome_dims']}; --outcome-dims must match to start from it"
-            )
-        added = {
-            "outcome_dims": cfg.outcome_dims_list(),
-            "outcome_candidates": cfg.candidates,
-            "outcome_stretches": cfg.stretches_list(),
-        }
+        added = _chooser_architecture(base_card["architecture"], cfg)
         self.policy = build_policy("flow", **{**base_card["architecture"], **added})
         # the candidate maps follow from the candidate count (a fixed seed), so a warm start takes them as configured
         missing, unexpected = self.policy.load_state_dict(
@@ -89,6 +79,28 @@ class FlowChooser:
         self.acting = ActingPolicy(self.policy, num_steps=cfg.flow_num_steps)
         self.noise_scale = self.policy.noise_scale
         self.chunk_shape = (self.policy.horizon, self.policy.action_dim)
+
+
+def _chooser_architecture(arch: dict, cfg: FinetuneConfig) -> dict:
+    """What the fit adds to the init's architecture: its outcome chooser as configured, or for `--algo value` (which
+    starts from an outcome chooser, kept as it is) a value model."""
+    if cfg.algo == "value":
+        if arch.get("outcome_dims") is None:
+            raise ValueError(f"{cfg.init}: --algo value starts from an outcome chooser (a flow with outcome_dims)")
+        if arch.get("value_dims") is not None and list(arch["value_dims"]) != cfg.value_dims_list():
+            raise ValueError(f"{cfg.init}: its value has value_dims {arch['value_dims']}; --value-dims must match")
+        return {"value_dims": cfg.value_dims_list()}
+    # An outcome chooser may start another outcome fit (its model warm, its stretches and candidates as configured).
+    if arch.get("outcome_dims") is not None and list(arch["outcome_dims"]) != cfg.outcome_dims_list():
+        raise ValueError(
+            f"{cfg.init}: its outcome chooser has outcome_dims {arch['outcome_dims']}; --outcome-dims must match to start from it"
+        )
+    return {
+        "outcome_dims": cfg.outcome_dims_list(),
+        "outcome_candidates": cfg.candidates,
+        "outcome_stretches": cfg.stretches_list(),
+        "value_dims": None,
+    }
 
 
 class OutcomeFit(Resumable):

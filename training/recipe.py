@@ -34,7 +34,16 @@ ACTING_KEYS = ("noise_scale", "outcome_candidates")
 # per stage kind: the settings --scale shrinks (counts of steps, iterations, episodes and the intervals between them)
 SCALED = {
     "train": ("steps", "eval_every", "eval_episodes", "checkpoint_every", "log_every"),
-    "finetune": ("iterations", "eval_every", "eval_episodes", "checkpoint_every", "learning_starts", "log_every"),
+    "finetune": (
+        "iterations",
+        "eval_every",
+        "eval_episodes",
+        "checkpoint_every",
+        "learning_starts",
+        "log_every",
+        "value_episodes",
+        "value_updates",
+    ),
     "ship": ("episodes",),
 }
 # settings a stage never takes from the recipe: the runner owns them
