@@ -144,6 +144,8 @@ class OutcomeSelector(nn.Module):
         self.choices = self.candidates * len(self.stretches)
         self.model = OutcomeModel(self.chunk_shape[0], hidden_dims)
         self.value = ValueModel(value_dims) if value_dims is not None else None
+        # Not saved: a value still unfitted (its first round of training.value_fit) leaves the ranking to the distance.
+        self.rank_by_value = self.value is not None
         self.register_buffer("rotations", orthogonal_maps(self.candidates, self.chunk_shape[0] * self.chunk_shape[1]))
 
     # Shapes below use -1 and flatten, never a traced batch size, so the exported graph keeps a dynamic batch.
@@ -186,7 +188,7 @@ class OutcomeSelector(nn.Module):
         """[B]: the cost of env-unit chunks [B, H, A] from states [B, S]: how far (`goal_corner_distance`) the model predicts
         they leave the block, or with a value, the `value_cost` of the end state it predicts."""
         pose = self.model(state, chunk)
-        if self.value is None:
+        if self.value is None or not self.rank_by_value:
             return goal_corner_distance(pose)
         return value_cost(self.value(torch.cat([chunk[:, -1], pose], dim=1)))
 

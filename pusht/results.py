@@ -66,6 +66,7 @@ class RolloutSummary:
     num_envs: int
     action_horizon: int
     max_steps: int
+    mean_steps_to_success: float | None = None  # over the successful episodes; None without one
     frames: list[np.ndarray] = field(default_factory=list, repr=False)
     trajectories: list[Trajectory] = field(default_factory=list, repr=False)
 
@@ -83,6 +84,7 @@ class RolloutSummary:
             success_rate=float(successes.mean()),
             success_rate_ci95=bootstrap_ci95(successes),
             mean_length=float(np.mean([e.length for e in episodes])),
+            mean_steps_to_success=float(np.mean(lengths)) if (lengths := [e.length for e in episodes if e.success]) else None,
             **kwargs,
         )
 
@@ -101,6 +103,7 @@ class RolloutSummary:
             "success_rate": round(self.success_rate, 4),
             "success_rate_ci95": [round(x, 4) for x in self.success_rate_ci95],
             "mean_length": round(self.mean_length, 2),
+            "mean_steps_to_success": None if self.mean_steps_to_success is None else round(self.mean_steps_to_success, 2),
             "num_envs": self.num_envs,
             "action_horizon": self.action_horizon,
             "max_steps": self.max_steps,
@@ -118,6 +121,7 @@ class RolloutSummary:
             "success_rate": self.success_rate,
             "success_rate_ci95": list(self.success_rate_ci95),
             "mean_length": self.mean_length,
+            "mean_steps_to_success": self.mean_steps_to_success,
             "decisions": self.decisions,
             "wall_time_s": self.wall_time_s,
             "num_envs": self.num_envs,

@@ -229,7 +229,14 @@ def test_a_value_fit_on_an_outcome_chooser_ranks_by_value_and_exports(tmp_path: 
     base, _ = load_checkpoint(chooser)
     for name, tensor in base.state_dict().items():
         assert torch.equal(tensor, tuned.state_dict()[name]), name
-    assert tuned.outcome.value is not None
+    assert tuned.outcome.value is not None and tuned.outcome.rank_by_value
+    # before its first fit the value is random: the first round's episodes are the outcome chooser's own
+    from training.outcome_fit import FlowChooser
+    from training.value_fit import ValueFit
+
+    agent = FlowChooser(*load_checkpoint(chooser), cfg)
+    ValueFit(agent, cfg, torch.Generator())
+    assert agent.policy.outcome.value is not None and not agent.policy.outcome.rank_by_value
     export_onnx(run / "last", run / "last.onnx")
     acting = load_acting_policy(run / "last")
     rng = np.random.default_rng(0)

@@ -327,3 +327,19 @@ def test_row_noise_rows_are_their_own_seeds_draws():
     np.testing.assert_array_equal(noise[0], noise[2])
     with pytest.raises(ValueError, match="non-empty"):
         row_noise([])
+
+
+def test_mean_steps_to_success_counts_only_the_successful_episodes() -> None:
+    from pusht.results import EpisodeResult, RolloutSummary
+
+    def summary(*episodes: tuple[int, bool]) -> RolloutSummary:
+        results = [
+            EpisodeResult(seed=i, max_reward=1.0 if ok else 0.5, success=ok, length=n, final_coverage=0.5)
+            for i, (n, ok) in enumerate(episodes)
+        ]
+        return RolloutSummary.from_episodes(results, decisions=1, wall_time_s=0.0, num_envs=1, action_horizon=12, max_steps=300)
+
+    both = summary((100, True), (140, True), (300, False))
+    assert both.mean_steps_to_success == 120 and both.mean_length == pytest.approx(180)
+    assert both.scores()["mean_steps_to_success"] == 120 and both.to_dict()["mean_steps_to_success"] == 120
+    assert summary((300, False)).mean_steps_to_success is None

@@ -37,6 +37,8 @@ class ValueFit(Resumable):
         self.value = agent.policy.outcome.value
         self.replay = ReplayBuffer(cfg.buffer_size, agent.policy.state_dim, 0, self.FIELDS)
         self.episodes = 0  # played so far: the next iteration starts at train_seed_start + episodes
+        # until the first fit the chooser ranks by distance, as it did before this stage (a random value ranks at random)
+        agent.policy.outcome.rank_by_value = False
 
     def parts(self) -> tuple[dict, dict, dict]:
         """(modules, optimizers, replays) by name (each iteration's fit starts a fresh optimizer)."""
@@ -51,6 +53,7 @@ class ValueFit(Resumable):
         """Restore what `state` saved."""
         super().load_state(tensors, extra)
         self.episodes = int(extra["value_episodes_played"])
+        self.agent.policy.outcome.rank_by_value = self.episodes > 0
 
     def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
         """One round: the chooser's episodes (their results join `finished_*`), their labels, the value refitted."""
@@ -69,9 +72,11 @@ class ValueFit(Resumable):
         finished_success.extend(e.success for e in summary.episodes)
         states, values = value_labels(summary, cfg.value_tau)
         self.replay.add(state=torch.as_tensor(states), value=torch.as_tensor(values))
+        loss = self._fit()
+        self.agent.policy.outcome.rank_by_value = True
         lengths = [e.length for e in summary.episodes if e.success]
         return {
-            "value_loss": self._fit(),
+            "value_loss": loss,
             "labels": self.replay.size,
             "collect_mean_steps_to_success": float(np.mean(lengths)) if lengths else None,
         }
