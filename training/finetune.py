@@ -144,6 +144,7 @@ class _FineTuning:
             "mean_max_reward_ci95": list(summary.mean_max_reward_ci95),
             "success_rate": summary.success_rate,
             "success_rate_ci95": list(summary.success_rate_ci95),
+            "mean_steps_to_success": summary.mean_steps_to_success,
             "seeds": [summary.seeds[0], summary.seeds[-1]],
             "episodes": len(summary.episodes),
         }
