@@ -49,7 +49,6 @@ _ARENA_CENTER = 256.0  # px: the block's own position (walls), to about [-1, 1]
 # The targets' units (px, px, rad): a push moves the block by some px and some hundredths of a radian.
 _POSE_SCALE = (10.0, 10.0, 0.1)
 DEFAULT_VALUE_DIMS = (256, 256, 256)
-VALUE_FLOOR = 1e-4  # the least value a cost is taken of (about 9 tau from success)
 TIE_MARGIN = 1e-3  # relative: a candidate replaces the flow's own sample only if predicted this much closer to the goal
 
 
@@ -117,8 +116,9 @@ class ValueModel(nn.Module):
 
 
 def value_cost(value: torch.Tensor) -> torch.Tensor:
-    """-log of values [N] floored at VALUE_FLOOR: about the steps to success over tau, >= 0 as `nearest` needs."""
-    return -torch.log(torch.clamp(value, VALUE_FLOOR, 1.0))
+    """exp(-value) of values [N]: > 0 as `nearest` needs, and ordered as the values however small (a regression may
+    predict a hopeless state's value below 0; a floor would make its candidates tie)."""
+    return torch.exp(-value)
 
 
 class OutcomeSelector(nn.Module):
