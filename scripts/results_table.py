@@ -4,7 +4,8 @@
     python scripts/results_table.py --stages      # each policy's recipe stages: wall time and score
 
 One row per policy: what it computes, its network evaluations per chunk, success and mean max reward with
-their 95 % intervals on the held-out seeds, and the recipe that made it with its summed stage wall time.
+their 95 % intervals on the held-out seeds, the mean steps of the successful episodes (n/a on a card
+shipped before evaluations reported it), and the recipe that made it with its summed stage wall time.
 The README's results table and models/README.md's stage tables are this command's output (tests/test_readme.py
 checks them).
 """
@@ -44,8 +45,8 @@ def table(cards: list, env: str) -> str:
     """The markdown table, the default policy first."""
     lines = [
         "| policy | computes | network evaluations per chunk | success (95 % CI) | mean max reward (95 % CI) "
-        "| held-out episodes | recipe | stage wall time |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| mean steps to success | held-out episodes | recipe | stage wall time |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for card in sorted(cards, key=lambda c: (not c.default, c.name)):
         score = card.data["heldout_evaluation"][env]
@@ -55,9 +56,11 @@ def table(cards: list, env: str) -> str:
         name = f"**{card.path.stem}** (default)" if card.default else card.path.stem
         recipe = card.data.get("recipe", {}).get("file", "-")
         minutes = card.data.get("stages_wall_time_s", 0) / 60
+        steps = score.get("mean_steps_to_success")
+        steps = "n/a" if steps is None else f"{steps:.0f}"
         lines.append(
             f"| {name} | {card.computes} | {card.network_evaluations()} | {100 * score['success_rate']:.1f} % "
-            f"({100 * low:.1f}..{100 * high:.1f}) | {score['mean_max_reward']:.3f} ({rlow:.3f}..{rhigh:.3f}) "
+            f"({100 * low:.1f}..{100 * high:.1f}) | {score['mean_max_reward']:.3f} ({rlow:.3f}..{rhigh:.3f}) | {steps} "
             f"| {score['episodes']} ({first}..{last}, {env}) | `{recipe}` | {minutes:.0f} min |"
         )
     return "\n".join(lines)
