@@ -13,8 +13,9 @@ the policy's own chunk shape (its card's horizon and action width), and the call
 whose rows are the same alone as in any batch), so an answer never depends, to the last bit, on what
 else was in the batch. Requests whose client left (their future is done) are dropped before their rows
 reach the model. Compute runs in the worker thread (ONNX Runtime and torch release the GIL), off the
-event loop, except a lone small request with nothing else queued (`inline_max_cost`): handing it to a
-thread and back costs more than its model call.
+event loop, except a small request (`inline_max_cost`) with nothing else queued (handing it to a thread
+and back costs more than its model call) or arriving while a call runs: it computes at once beside that
+call instead of after it, so a cheap policy's lone rows never wait for bulk ones.
 """
 
 from __future__ import annotations
@@ -80,8 +81,9 @@ class Batcher:
         self.queue_limit = queue_limit
         self._observe = observe
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"policy-{policy.name}")
-        # Only the worker thread draws from this generator, so it needs no lock.
+        # Only the worker thread draws from the first, only the event loop from the second: neither needs a lock.
         self._rng = np.random.default_rng()
+        self._loop_rng = np.random.default_rng()
         self._pending: deque[_Item] = deque()
         self._pending_cost = 0
         self._pending_rows = 0
@@ -122,7 +124,14 @@ class Batcher:
             )
         loop = asyncio.get_running_loop()
         future = loop.create_future()
-        self._pending.append(_Item(states, seed, seeds, num_steps, future, loop.time(), unit, noise=noise))
+        item = _Item(states, seed, seeds, num_steps, future, loop.time(), unit, noise=noise)
+        if self._busy and rows * unit <= self.inline_max_cost:
+            # A small request beside a running call computes now, on the loop, beside the worker thread (both backends
+            # take concurrent calls), rather than after that call: with a cheap policy a lone row then waits for no
+            # bulk call at all.
+            self._express(item)
+            return future
+        self._pending.append(item)
         self._pending_cost += rows * unit
         self._pending_rows += rows
         self._schedule(loop)
@@ -255,8 +264,9 @@ class Batcher:
             self._pending_rows -= rows
         return batch
 
-    def _compute(self, batch: list[_Slice]) -> np.ndarray:
-        """Runs on the worker thread: noise per request or row, one concatenated model call (`act` pads it)."""
+    def _compute(self, batch: list[_Slice], rng: np.random.Generator | None = None) -> np.ndarray:
+        """Runs on the worker thread (or inline): noise per request or row, one concatenated model call (`act` pads it);
+        fresh noise from `rng` (default: the worker's generator)."""
         policy = self.policy
         if len(batch) == 1:
             item, start, stop = batch[0]
@@ -265,14 +275,23 @@ class Batcher:
             states = np.concatenate([item.states[start:stop] for item, start, stop in batch])
         noise = None  # a flow that uses no noise gets zeros from `act` itself
         if policy.kind == "flow" and policy.uses_noise:
-            parts = [self._noise(*part) for part in batch]
+            parts = [self._noise(*part, rng or self._rng) for part in batch]
             noise = parts[0] if len(parts) == 1 else np.concatenate(parts)
         actions = policy.act(states, noise=noise, num_steps=batch[0][0].num_steps)
         if self._observe is not None:
             self._observe(policy.name, len(states), len(batch))
         return actions
 
-    def _noise(self, item: _Item, start: int, stop: int) -> np.ndarray:
+    def _express(self, item: _Item) -> None:
+        """Compute a whole small request at once on the event loop (noise from the loop's own generator)."""
+        try:
+            actions = self._compute([(item, 0, len(item.states))], self._loop_rng)
+        except Exception as exc:  # delivered to the request like a worker thread's failure
+            item.future.set_exception(exc)
+            return
+        item.future.set_result(actions)
+
+    def _noise(self, item: _Item, start: int, stop: int, rng: np.random.Generator) -> np.ndarray:
         horizon, action_dim = self.policy.horizon, self.policy.action_dim
         if item.noise is not None and item.seed is None:  # the caller's own noise (the OIP `noise` input)
             return item.noise[start:stop]
@@ -284,7 +303,7 @@ class Batcher:
             if item.noise is None:  # a request split over calls: its one draw, sliced
                 item.noise = chunk_noise(item.seed, len(item.states), horizon, action_dim)
             return item.noise[start:stop]
-        return self._rng.standard_normal((stop - start, horizon, action_dim), dtype=np.float32)
+        return rng.standard_normal((stop - start, horizon, action_dim), dtype=np.float32)
 
     def _finish(self, loop: asyncio.AbstractEventLoop, batch: list[_Slice], fut: asyncio.Future) -> None:
         if fut.cancelled():

@@ -147,6 +147,45 @@ def test_a_lone_small_request_runs_on_the_event_loop_and_the_rest_on_the_worker(
     assert policy.threads[0] == threading.main_thread().name and on_worker == [False, True, True, False]
 
 
+def test_a_small_request_beside_a_running_call_computes_at_once_on_the_event_loop() -> None:
+    """While the worker runs a long call, a request within inline_max_cost is answered on the loop before that call ends."""
+    import threading
+    import time
+
+    from service.batching import Batcher
+
+    class Slow:
+        """Just the part of `acting.Policy` the batcher uses; a call of more than 4 rows takes 0.3 s."""
+
+        name, kind, horizon, action_dim, batch_multiple = "slow", "mse", 12, 2, 4
+        threads: list[str] = []
+
+        def network_evaluations(self, num_steps=None):
+            return 1
+
+        def act(self, states, prev_states=None, *, noise=None, num_steps=None):
+            self.threads.append(threading.current_thread().name)
+            if len(states) > 4:
+                time.sleep(0.3)
+            return np.repeat(states[:, None, :2], 12, axis=1)
+
+    policy = Slow()
+
+    async def run() -> tuple:
+        batcher = Batcher(policy, inline_max_cost=4)
+        try:
+            bulk = asyncio.ensure_future(batcher.submit(np.full((64, 5), 1.0, np.float32)))
+            await asyncio.sleep(0.05)  # the bulk call is running on the worker
+            small = await batcher.submit(np.full((1, 5), 2.0, np.float32))
+            return small, bulk.done(), await bulk
+        finally:
+            batcher.close()
+
+    small, bulk_done_first, bulk = asyncio.run(run())
+    assert small[0, 0, 0] == 2.0 and bulk[0, 0, 0] == 1.0 and not bulk_done_first
+    assert policy.threads[0].startswith("policy-slow") and policy.threads[1] == threading.main_thread().name
+
+
 def test_batcher_sheds_load_beyond_its_queue_limit(test_models: Path) -> None:
     """Rows beyond queue_limit waiting at once are refused with Overloaded (-> 503); the rest are answered."""
     from acting import load_policy
