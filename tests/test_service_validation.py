@@ -205,9 +205,11 @@ def test_num_steps_where_the_sampler_has_none_gets_a_422_and_policies_say_the_co
         if info["kind"] == "mse":
             continue
         arch = read_card(server.models_dir / f"{name}.json").architecture
-        # a chooser picks among K candidates at S stretches: K x 10 flow steps, K x S outcome-model passes
+        # a chooser picks among K candidates at S stretches: K x 10 flow steps, K x S outcome-model passes (and as many
+        # value passes)
         candidates = arch.get("outcome_candidates", 16) if arch.get("outcome_dims") else 1
         stretches = len(arch.get("outcome_stretches", [1.0])) if arch.get("outcome_dims") else 0
+        stretches *= 2 if arch.get("value_dims") else 1
         assert info["num_steps"] == 10
         assert info["network_evaluations"] == candidates * 10 + candidates * stretches, name
 

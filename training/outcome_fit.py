@@ -99,8 +99,7 @@ def _chooser_architecture(arch: dict, cfg: FinetuneConfig) -> dict:
         "outcome_dims": cfg.outcome_dims_list(),
         "outcome_candidates": cfg.candidates,
         "outcome_stretches": cfg.stretches_list(),
-        "value_dims": None,
-    }
+    }  # a value the init has stays, as it was fitted
 
 
 class OutcomeFit(Resumable):
