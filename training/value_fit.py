@@ -17,7 +17,7 @@ from functools import partial
 import numpy as np
 import torch
 
-from pusht.rollout import run_episodes
+from pusht.rollout import RolloutSummary, run_episodes
 from pusht.seeding import row_noise
 from training.chunk_env import ChunkVectorEnv
 from training.finetune_config import FinetuneConfig
@@ -106,7 +106,7 @@ class ValueFit(Resumable):
         return float(np.mean(losses[-100:]))
 
 
-def value_labels(summary, tau: float) -> tuple[np.ndarray, np.ndarray]:
+def value_labels(summary: RolloutSummary, tau: float) -> tuple[np.ndarray, np.ndarray]:
     """Every recorded state [N, 5] (float32) and its label [N]: exp(-steps to success / tau), 0 in a failed episode."""
     success = {e.seed: e.success for e in summary.episodes}
     states, values = [], []
