@@ -50,6 +50,7 @@ _ARENA_CENTER = 256.0  # px: the block's own position (walls), to about [-1, 1]
 _POSE_SCALE = (10.0, 10.0, 0.1)
 DEFAULT_VALUE_DIMS = (256, 256, 256)
 TIE_MARGIN = 1e-3  # relative: a candidate replaces the flow's own sample only if predicted this much closer to the goal
+FLOAT_TIE = 1e-5  # relative: costs this close are one cost (float rounding differs between runtimes by ~1e-7)
 
 
 FEATURE_TARGETS = slice(2, -4)
@@ -205,7 +206,10 @@ class OutcomeSelector(nn.Module):
 
 def nearest(distance: torch.Tensor) -> torch.Tensor:
     """Index [B] of the least of the candidates' predicted costs [B, C] (>= 0), 0 (the flow's own sample) on a near tie."""
-    best = distance.argmin(dim=1)
+    # Candidates whose clipped chunks are the same (stretched past the arena's edge) tie exactly, up to float noise:
+    # the first within FLOAT_TIE of the least plays, so ONNX Runtime and torch pick the same one.
+    least = distance.min(dim=1, keepdim=True).values
+    best = (distance <= least * (1 + FLOAT_TIE)).to(torch.int32).argmax(dim=1)
     # Chunks that do not reach the block tie up to float noise, and float noise must not choose (ONNX Runtime and
     # torch round differently): unless a candidate is clearly better, the flow's own sample (candidate 0) plays.
     clearly = distance.gather(1, best[:, None]).squeeze(1) < distance[:, 0] * (1 - TIE_MARGIN)

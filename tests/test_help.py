@@ -17,6 +17,7 @@ REPO = Path(__file__).resolve().parent.parent
     [
         ("training.train", "--policy {mse,flow} policy kind: mse or flow --name", "(default: 200000)"),
         ("training.recipe", "recipe the recipe file, e.g. recipes/flow.toml", "(default: runs/recipes)"),
+        ("training.collect", "--model MODEL an ONNX file or a checkpoint stem --out OUT", "(default: 10000000)"),
         ("training.finetune", "--init INIT flow checkpoint stem to fine-tune", "(default: 0.2)"),
         (
             "training.ship",

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from policies.checkpoint import load_checkpoint
-from policies.chooser import OutcomeModel, OutcomeSelector, goal_corner_distance
+from policies.chooser import FLOAT_TIE, TIE_MARGIN, OutcomeModel, OutcomeSelector, goal_corner_distance, nearest
 from policies.factory import build_policy
 from policies.selection import orthogonal_maps
 from pusht.geometry import GOAL_POSE, coverage
@@ -277,3 +277,13 @@ def test_setting_the_candidate_count_keeps_every_learned_weight_and_the_first_ma
     save_checkpoint(tmp_path / "plain", *load_checkpoint(SHIPPED)[:1])
     with pytest.raises(ValueError, match="outcome chooser"):
         set_outcome_candidates(tmp_path / "plain", 8)
+
+
+def test_nearest_picks_the_first_of_tied_costs_and_the_own_sample_unless_clearly_better() -> None:
+    """Costs within float rounding are one cost (the first plays, in ONNX Runtime as in torch); a candidate must beat
+    the flow's own sample (index 0) by TIE_MARGIN to replace it."""
+    ties = torch.tensor([[1.0, 0.5, 0.5 * (1 - FLOAT_TIE / 10), 0.5, 0.7]])
+    clear = torch.tensor([[1.0, 0.9, 0.4, 0.4 * (1 + FLOAT_TIE * 10)]])
+    own = torch.tensor([[1.0, 1.0 - TIE_MARGIN / 2, 2.0]])
+    assert nearest(torch.cat([ties, torch.ones(1, 1)], dim=1)).tolist() == [1]
+    assert nearest(clear).tolist() == [2] and nearest(own).tolist() == [0]

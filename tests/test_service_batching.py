@@ -111,22 +111,7 @@ def test_a_lone_small_request_runs_on_the_event_loop_and_the_rest_on_the_worker(
 
     from service.batching import Batcher
 
-    class Recording:
-        """Just the part of `acting.Policy` the batcher uses; notes the thread of every call."""
-
-        name, kind, horizon, action_dim, batch_multiple = "recording", "mse", 12, 2, 4
-        threads: list[str] = []
-
-        def network_evaluations(self, num_steps=None):
-            return 1
-
-        def act(self, states, prev_states=None, *, noise=None, num_steps=None):
-            self.threads.append(threading.current_thread().name)
-            if states[0, 0] < 0:
-                raise RuntimeError("model call failed")
-            return np.repeat(states[:, None, :2], 12, axis=1)
-
-    policy = Recording()
+    policy = _Recording()
 
     async def run() -> list:
         batcher = Batcher(policy, inline_max_cost=4)
@@ -150,26 +135,10 @@ def test_a_lone_small_request_runs_on_the_event_loop_and_the_rest_on_the_worker(
 def test_a_small_request_beside_a_running_call_computes_at_once_on_the_event_loop() -> None:
     """While the worker runs a long call, a request within inline_max_cost is answered on the loop before that call ends."""
     import threading
-    import time
 
     from service.batching import Batcher
 
-    class Slow:
-        """Just the part of `acting.Policy` the batcher uses; a call of more than 4 rows takes 0.3 s."""
-
-        name, kind, horizon, action_dim, batch_multiple = "slow", "mse", 12, 2, 4
-        threads: list[str] = []
-
-        def network_evaluations(self, num_steps=None):
-            return 1
-
-        def act(self, states, prev_states=None, *, noise=None, num_steps=None):
-            self.threads.append(threading.current_thread().name)
-            if len(states) > 4:
-                time.sleep(0.3)
-            return np.repeat(states[:, None, :2], 12, axis=1)
-
-    policy = Slow()
+    policy = _Recording(slow_over_rows=4)
 
     async def run() -> tuple:
         batcher = Batcher(policy, inline_max_cost=4)
@@ -183,7 +152,7 @@ def test_a_small_request_beside_a_running_call_computes_at_once_on_the_event_loo
 
     small, bulk_done_first, bulk = asyncio.run(run())
     assert small[0, 0, 0] == 2.0 and bulk[0, 0, 0] == 1.0 and not bulk_done_first
-    assert policy.threads[0].startswith("policy-slow") and policy.threads[1] == threading.main_thread().name
+    assert policy.threads[0].startswith("policy-recording") and policy.threads[1] == threading.main_thread().name
 
 
 def test_batcher_sheds_load_beyond_its_queue_limit(test_models: Path) -> None:
@@ -204,3 +173,28 @@ def test_batcher_sheds_load_beyond_its_queue_limit(test_models: Path) -> None:
     results = asyncio.run(run())
     assert [type(r).__name__ for r in results] == ["ndarray", "ndarray", "Overloaded"]
     assert isinstance(results[2], Overloaded) and "limit 10" in str(results[2])
+
+
+class _Recording:
+    """Just the part of `acting.Policy` the batcher uses: notes the thread of every call, fails on a negative first
+    state, and with `slow_over_rows` takes 0.3 s over a call of more rows than that."""
+
+    name, kind, horizon, action_dim, batch_multiple = "recording", "mse", 12, 2, 4
+
+    def __init__(self, slow_over_rows: int | None = None) -> None:
+        self.threads: list[str] = []
+        self.slow_over_rows = slow_over_rows
+
+    def network_evaluations(self, num_steps=None):
+        return 1
+
+    def act(self, states, prev_states=None, *, noise=None, num_steps=None):
+        import threading
+        import time
+
+        self.threads.append(threading.current_thread().name)
+        if states[0, 0] < 0:
+            raise RuntimeError("model call failed")
+        if self.slow_over_rows is not None and len(states) > self.slow_over_rows:
+            time.sleep(0.3)
+        return np.repeat(states[:, None, :2], 12, axis=1)

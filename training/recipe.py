@@ -5,9 +5,11 @@
         --records-dir runs/smoke/records                      # a smoke run in minutes; models/ untouched
 
 A recipe file (TOML) names the policy it ships and lists its `[[stage]]`s. Each stage has a `name`, a
-`run` (train, finetune or ship), optionally `from` (the stage whose checkpoint it takes; default the
-previous one) and `acting` (sampling settings written on its output checkpoint, such as noise_scale),
-and only the settings that differ from that command's defaults. A stage's output is cached in
+`run` (train, finetune, collect or ship), optionally `from` (the stage whose checkpoint it takes; default
+the previous one; a train stage starts fresh unless it names one) and `acting` (sampling settings written
+on its output checkpoint, such as noise_scale), and only the settings that differ from that command's
+defaults. A collect stage plays its source's episodes (training.collect) and keeps the successful ones; a
+train stage's `extra_from` lists collect stages whose episodes it learns from beside the demonstrations. A stage's output is cached in
 OUT_DIR/STAGE-KEY, KEY a hash of its settings and its inputs: a second run is all cached, a
 changed stage reruns with the stages after it. A stopped stage (SIGTERM, SIGINT) resumes on the next
 run. The shipped card cites the recipe file and its sha256, the commit, and every stage's wall time.
@@ -29,7 +31,7 @@ from training.cli import HelpFormatter
 
 __all__ = ["Recipe", "Stage", "load_recipe", "main", "run_recipe"]
 
-STAGE_RUNS = ("train", "finetune", "ship")
+STAGE_RUNS = ("train", "finetune", "collect", "ship")
 ACTING_KEYS = ("noise_scale", "outcome_candidates")
 # per stage kind: the settings --scale shrinks (counts of steps, iterations, episodes and the intervals between them)
 SCALED = {
@@ -44,10 +46,24 @@ SCALED = {
         "value_episodes",
         "value_updates",
     ),
+    "collect": ("episodes",),
     "ship": ("episodes",),
 }
 # settings a stage never takes from the recipe: the runner owns them
-RUNNER_OWNED = ("name", "out_dir", "resume", "overwrite", "progress", "init", "run", "models_dir", "records_dir")
+RUNNER_OWNED = (
+    "name",
+    "out_dir",
+    "resume",
+    "overwrite",
+    "progress",
+    "init",
+    "extra_data",
+    "run",
+    "models_dir",
+    "records_dir",
+    "model",
+    "out",
+)
 DONE_FILE = "stage.json"
 
 
@@ -60,6 +76,8 @@ class Stage:
     settings: dict[str, Any]
     source: str | None = None
     acting: dict[str, Any] = field(default_factory=dict)
+    extra_sources: tuple[str, ...] = ()
+    """collect stages whose episodes a train stage learns from beside the demonstrations"""
 
 
 @dataclass
@@ -174,6 +192,12 @@ def load_recipe(path: Path) -> Recipe:
     stages: list[Stage] = []
     for index, table in enumerate(raw):
         stages.append(_parse_stage(path, index, dict(table), [s.name for s in stages]))
+    runs = {s.name: s.run for s in stages}
+    for stage in stages:
+        if any(runs[name] != "collect" for name in stage.extra_sources):
+            raise RecipeError(
+                f"{path}: stage {stage.name}: `extra_from` names only collect stages, got {list(stage.extra_sources)}"
+            )
     if stages[-1].run != "ship":
         raise RecipeError(f'{path}: the last stage must be `run = "ship"`')
     return Recipe(path, data["policy"], str(data.get("description", "")), stages, data.get("default", False))
@@ -188,9 +212,12 @@ def _parse_stage(path: Path, index: int, table: dict[str, Any], earlier: list[st
         raise RecipeError(f"{where}: the name {name!r} is used twice")
     if run not in STAGE_RUNS:
         raise RecipeError(f"{where} ({name}): `run` must be one of {STAGE_RUNS}, got {run!r}")
-    source = table.pop("from", earlier[-1] if earlier else None)
-    if run != "train" and source not in earlier:
+    source = table.pop("from", None if run == "train" or not earlier else earlier[-1])
+    if (run != "train" or source is not None) and source not in earlier:
         raise RecipeError(f"{where} ({name}): `from` must name an earlier stage, got {source!r}")
+    extra = table.pop("extra_from", [])
+    if extra and (run != "train" or not isinstance(extra, list) or not set(extra) <= set(earlier)):
+        raise RecipeError(f"{where} ({name}): `extra_from` is a train stage's list of earlier collect stages, got {extra!r}")
     acting = table.pop("acting", {})
     if not isinstance(acting, dict) or set(acting) - set(ACTING_KEYS):
         raise RecipeError(f"{where} ({name}): `acting` takes only {ACTING_KEYS}")
@@ -201,7 +228,7 @@ def _parse_stage(path: Path, index: int, table: dict[str, Any], earlier: list[st
     unknown = sorted(set(table) - allowed)
     if unknown:
         raise RecipeError(f'{where} ({name}): unknown settings for `run = "{run}"`: {unknown}')
-    return Stage(name, run, table, source if run != "train" else None, acting)
+    return Stage(name, run, table, source, acting, tuple(extra))
 
 
 def _settings_fields(run: str) -> set[str]:
@@ -213,6 +240,10 @@ def _settings_fields(run: str) -> set[str]:
         from training.finetune_config import FinetuneConfig
 
         return {f.name for f in fields(FinetuneConfig)}
+    if run == "collect":
+        from training.collect import CollectConfig
+
+        return {f.name for f in fields(CollectConfig)} - {"progress"}
     return {"episodes", "envs", "seed"}
 
 
@@ -225,8 +256,9 @@ def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
     for index, stage in enumerate(recipe.stages, 1):
         settings = scaled(stage, options.scale)
         source = results[stage.source] if stage.source else None
+        extra = [results[name] for name in stage.extra_sources]
         shipped = {"policy": recipe.policy, "description": recipe.description, "default": recipe.default}
-        key = stage_key(stage, settings, source, options.scale, shipped if stage.run == "ship" else None)
+        key = stage_key(stage, settings, source, options.scale, shipped if stage.run == "ship" else None, extra)
         stage_dir = options.out_dir / f"{stage.name}-{key}"  # recipes that share a stage share its folder
         print(f"[{index}/{len(recipe.stages)}] {stage.name} ({stage.run}) -> {stage_dir}", file=sys.stderr, flush=True)
         result = _cached(stage, key, stage_dir, options.models_dir / f"{recipe.policy}.json")
@@ -244,6 +276,7 @@ def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
                     list(results.values()),
                     commit,
                     key,
+                    [r.dir for r in extra],
                 )
             )
         results[stage.name] = result
@@ -254,10 +287,11 @@ def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
 
 def scaled(stage: Stage, scale: float) -> dict[str, Any]:
     """The stage's settings with its counts multiplied by `scale` (at least 1 each)."""
+    from training.collect import CollectConfig
     from training.config import TrainConfig
     from training.finetune_config import FinetuneConfig
 
-    defaults = {"train": TrainConfig, "finetune": FinetuneConfig}.get(stage.run)
+    defaults = {"train": TrainConfig, "finetune": FinetuneConfig, "collect": CollectConfig}.get(stage.run)
     settings = dict(stage.settings)
     if scale == 1:
         return settings
@@ -276,11 +310,18 @@ def _default(cls: type, name: str) -> Any:
 
 
 def stage_key(
-    stage: Stage, settings: dict[str, Any], source: StageResult | None, scale: float, shipped: dict[str, Any] | None = None
+    stage: Stage,
+    settings: dict[str, Any],
+    source: StageResult | None,
+    scale: float,
+    shipped: dict[str, Any] | None = None,
+    extra: list[StageResult] = (),
 ) -> str:
-    """A hash of what the stage computes from: its kind, settings, acting settings and its input (a stage's key or the data;
-    for ship also what the recipe says of the policy it ships)."""
+    """A hash of what the stage computes from: its kind, settings, acting settings and its inputs (a stage's key, the data,
+    collected episodes; for ship also what the recipe says of the policy it ships)."""
     inputs: dict[str, Any] = {"from": source.key if source else None}
+    if extra:
+        inputs["extra"] = [r.key for r in extra]
     if shipped is not None:
         inputs["shipped"] = shipped
     if stage.run == "train":
@@ -330,7 +371,12 @@ def _run_stage(context: Any) -> StageResult:
     from training import recipe_stages
 
     stage, stage_dir, key, commit = context.stage, context.stage_dir, context.key, context.commit
-    runner = {"train": recipe_stages.train, "finetune": recipe_stages.finetune, "ship": recipe_stages.ship}[stage.run]
+    runner = {
+        "train": recipe_stages.train,
+        "finetune": recipe_stages.finetune,
+        "collect": recipe_stages.collect,
+        "ship": recipe_stages.ship,
+    }[stage.run]
     started = time.perf_counter()
     outcome = runner(context)
     wall = outcome.wall_time_s if outcome.wall_time_s is not None else time.perf_counter() - started

@@ -1,8 +1,8 @@
-"""The recipe runner's stages: train, finetune and ship, each run from a recipe's settings into its stage folder.
+"""The recipe runner's stages: train, finetune, collect and ship, each run from a recipe's settings into its stage folder.
 
 Each takes a `StageContext` and returns a `StageOutcome` (score, wall time, exit code). Train and finetune
 are the run lifecycle of `training.train` and `training.finetune`: a folder with a resumable state is
-resumed, a finished one is taken as it is. Ship scores a copy of its source checkpoint on held-out seeds,
+resumed, a finished one is taken as it is. Collect writes its source's successful episodes (training.collect). Ship scores a copy of its source checkpoint on held-out seeds,
 writes MODELS_DIR/POLICY and RECORDS_DIR/POLICY, and makes the card cite the recipe.
 """
 
@@ -12,13 +12,13 @@ import json
 import re
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from policies.checkpoint import load_card, set_noise_scale, set_outcome_candidates, update_card
 
-__all__ = ["StageContext", "StageOutcome", "finetune", "ship", "train"]
+__all__ = ["StageContext", "StageOutcome", "collect", "finetune", "ship", "train"]
 
 RECIPE_COMMAND = "python -m training.recipe"
 
@@ -36,6 +36,8 @@ class StageContext:
     before: list[Any]
     commit: str
     key: str
+    extra_dirs: list[Path] = field(default_factory=list)
+    """the folders of the collect stages a train stage learns from"""
 
     def run_options(self) -> dict[str, Any]:
         """The settings the runner owns: folder, resume or start afresh, threads, progress bar."""
@@ -62,12 +64,16 @@ class StageOutcome:
 
 
 def train(ctx: StageContext) -> StageOutcome:
-    """Imitation (`training.train`) on the demonstrations."""
+    """Imitation (`training.train`) on the demonstrations and any collected episodes; fresh, or from the source's checkpoint."""
+    from training.collect import EPISODES_STORE
     from training.config import TrainConfig
     from training.train import train as run_train
 
+    inputs = {"extra_data": ",".join(str(d / EPISODES_STORE) for d in ctx.extra_dirs)}
+    if ctx.source_dir is not None:
+        inputs["init"] = str(ctx.source_dir / "last")
     if not _finished(ctx.stage_dir):
-        run = run_train(TrainConfig(**ctx.settings, **ctx.run_options()))
+        run = run_train(TrainConfig(**ctx.settings, **inputs, **ctx.run_options()))
         if run.stop_requested:
             return StageOutcome(None, None, run.exit_code())
     return _finish(ctx)
@@ -83,6 +89,21 @@ def finetune(ctx: StageContext) -> StageOutcome:
         if run.stop_requested:
             return StageOutcome(None, None, run.exit_code())
     return _finish(ctx)
+
+
+def collect(ctx: StageContext) -> StageOutcome:
+    """The source's successful episodes (`training.collect`) in STAGE_DIR/episodes.zarr; scored by the collection's success."""
+    from training.collect import EPISODES_STORE, CollectConfig
+    from training.collect import collect as run_collect
+
+    started = time.perf_counter()
+    ctx.stage_dir.mkdir(parents=True, exist_ok=True)
+    cfg = CollectConfig(
+        str(ctx.source_dir / "last"), ctx.stage_dir / EPISODES_STORE, **ctx.settings, progress=ctx.options.progress
+    )
+    line = run_collect(cfg)
+    (ctx.stage_dir / "collect.json").write_text(json.dumps(line, indent=2) + "\n")
+    return StageOutcome(_score(line), time.perf_counter() - started)
 
 
 def ship(ctx: StageContext) -> StageOutcome:

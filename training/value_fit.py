@@ -12,14 +12,12 @@ step of policy iteration: the value of the chooser of the iteration before. Epis
 
 from __future__ import annotations
 
-from functools import partial
-
 import numpy as np
 import torch
 
-from pusht.rollout import RolloutSummary, run_episodes
-from pusht.seeding import row_noise
+from pusht.rollout import RolloutSummary
 from training.chunk_env import ChunkVectorEnv
+from training.evaluate import evaluate_policy
 from training.finetune_config import FinetuneConfig
 from training.outcome_fit import FlowChooser, Resumable
 from training.replay import ReplayBuffer
@@ -58,16 +56,15 @@ class ValueFit(Resumable):
     def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
         """One round: the chooser's episodes (their results join `finished_*`), their labels, the value refitted."""
         cfg = self.cfg
-        seeds = list(range(cfg.train_seed_start + self.episodes, cfg.train_seed_start + self.episodes + cfg.value_episodes))
-        summary = run_episodes(
-            self._act,
-            seeds,
-            cfg.num_envs,
+        summary = evaluate_policy(
+            self.agent.acting,
+            cfg.value_episodes,
+            cfg.train_seed_start + self.episodes,
+            num_envs=cfg.num_envs,
             max_steps=cfg.value_max_steps,
             record_trajectories=True,
-            env_factory=partial(_env, cfg.value_max_steps),
         )
-        self.episodes += len(seeds)
+        self.episodes += cfg.value_episodes
         finished_max.extend(e.max_reward for e in summary.episodes)
         finished_success.extend(e.success for e in summary.episodes)
         states, values = value_labels(summary, cfg.value_tau)
@@ -80,12 +77,6 @@ class ValueFit(Resumable):
             "labels": self.replay.size,
             "collect_mean_steps_to_success": float(np.mean(lengths)) if lengths else None,
         }
-
-    def _act(self, states: np.ndarray, seeds: list[int], prev_states: np.ndarray | None = None) -> np.ndarray:
-        agent = self.agent
-        noise = torch.as_tensor(row_noise(seeds, *agent.chunk_shape))
-        with torch.no_grad():
-            return agent.acting(torch.as_tensor(states, dtype=torch.float32), noise).numpy()
 
     def _fit(self) -> float:
         """`value_updates` minibatches of regression, the learning rate annealed to 0; the mean loss of the last 100."""
@@ -116,10 +107,3 @@ def value_labels(summary: RolloutSummary, tau: float) -> tuple[np.ndarray, np.nd
         values.append(np.exp(-to_go / tau) if success[trajectory.seed] else np.zeros(steps))
         states.append(trajectory.states)
     return np.concatenate(states).astype(np.float32), np.concatenate(values).astype(np.float32)
-
-
-def _env(max_steps: int):
-    """The project's env without rendering: collection records states, not frames."""
-    from pusht.env import PushTEnv
-
-    return PushTEnv(obs_type="state", render_mode=None, max_episode_steps=max_steps)
