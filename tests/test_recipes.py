@@ -101,9 +101,10 @@ def _statuses(table: str) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Every recipe run once at --scale 0.01 into one folder (flow and flow-chooser share their imitation stage)."""
+    """Every recipe run once at --scale 0.01 into one folder (flow and flow-chooser share their imitation stage), with
+    --threads 1 over the stages' own (flow-chooser's set 2)."""
     out = tmp_path_factory.mktemp("recipes")
-    tables = {path.stem: _recipe(path, out) for path in RECIPES}
+    tables = {path.stem: _recipe(path, out, "--threads", "1") for path in RECIPES}
     (out / "tables.json").write_text(json.dumps(tables))
     return out
 
@@ -122,6 +123,7 @@ def test_each_recipe_makes_a_policy_the_service_serves(smoke: Path) -> None:
         assert card["reproduce"] == f"python -m training.recipe recipes/{path.name}"
         assert [s["name"] for s in card["stages"]] == [s.name for s in load_recipe(path).stages]
         assert str(smoke / "runs") not in json.dumps(card)
+        assert card["config"].get("threads", 1) == 1
     with UvicornProcess({"PUSHT_MODELS_DIR": str(smoke / "models")}) as server:
         listing = {p["name"]: p for p in httpx.get(f"{server.url}/policies").json()["policies"]}
         assert {name: (p["kind"], p["stochastic"], p["default"]) for name, p in listing.items()} == {

@@ -53,6 +53,11 @@ class StageContext:
             **extra,
         }
 
+    def config(self, cls: type, **inputs: Any) -> Any:
+        """The stage's command config: its settings, then its inputs and the runner's options over them (--threads
+        replaces a stage's own threads)."""
+        return cls(**{**self.settings, **inputs, **self.run_options()})
+
 
 @dataclass
 class StageOutcome:
@@ -73,7 +78,7 @@ def train(ctx: StageContext) -> StageOutcome:
     if ctx.source_dir is not None:
         inputs["init"] = str(ctx.source_dir / "last")
     if not _finished(ctx.stage_dir):
-        run = run_train(TrainConfig(**ctx.settings, **inputs, **ctx.run_options()))
+        run = run_train(ctx.config(TrainConfig, **inputs))
         if run.stop_requested:
             return StageOutcome(None, None, run.exit_code())
     return _finish(ctx)
@@ -85,7 +90,7 @@ def finetune(ctx: StageContext) -> StageOutcome:
     from training.finetune_config import FinetuneConfig
 
     if not _finished(ctx.stage_dir):
-        run = run_finetune(FinetuneConfig(**ctx.settings, init=str(ctx.source_dir / "last"), **ctx.run_options()))
+        run = run_finetune(ctx.config(FinetuneConfig, init=str(ctx.source_dir / "last")))
         if run.stop_requested:
             return StageOutcome(None, None, run.exit_code())
     return _finish(ctx)
