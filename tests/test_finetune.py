@@ -254,7 +254,3 @@ def test_a_value_fit_on_an_outcome_chooser_ranks_by_value_and_exports(tmp_path: 
 
     _, values = value_labels(Episodes, tau=10.0)
     np.testing.assert_allclose(values, [np.exp(-0.3), np.exp(-0.2), np.exp(-0.1), 0, 0, 0], rtol=1e-6)
-    _, values = value_labels(Episodes, tau=10.0, horizon=6)
-    np.testing.assert_allclose(values, [0.5, 2 / 3, 5 / 6, 0, 0, 0], rtol=1e-6)
-    with pytest.raises(ValueError, match="value_label must be exp or linear"):
-        _tiny(tmp_path, value_label="log")

@@ -54,11 +54,6 @@ class FinetuneConfig:
     label_envs: int = option(32, "envs whose state is labelled at each decision step")
     value_dims: str = option("256,256,256", "value: hidden widths of the value model (comma-separated)")
     value_tau: float = option(100.0, "value: a state's label is exp(-steps to success / tau), 0 in a failed episode")
-    value_label: str = option(
-        "exp",
-        "value: exp (the label above) or linear (1 - steps to success / value_max_steps: the chooser then minimizes the "
-        "expected steps, a failure counted as value_max_steps)",
-    )
     value_episodes: int = option(1024, "value: episodes played by the current chooser per iteration")
     value_max_steps: int = option(600, "value: step limit of those episodes (past 300, so slow successes are labelled too)")
     value_updates: int = option(12_000, "value: minibatches of regression per iteration (learning rate annealed to 0)")
@@ -115,8 +110,6 @@ class FinetuneConfig:
             raise ValueError(f"explore must be in [0, 1], got {self.explore}")
         if not self.value_tau > 0:
             raise ValueError(f"value_tau must be > 0, got {self.value_tau}")
-        if self.value_label not in ("exp", "linear"):
-            raise ValueError(f"value_label must be exp or linear, got {self.value_label!r}")
         self.outcome_dims_list()
         self.value_dims_list()
         self.stretches_list()

@@ -3,8 +3,8 @@
 The outcome chooser (training.outcome_fit) plays the chunk it predicts leaves the tee closest to the goal:
 greedy over one chunk, so it dithers where a better approach takes a detour, and it is slower than the
 demonstrators it copies. Each iteration here plays `value_episodes` episodes of up to `value_max_steps`
-steps with the current chooser, labels every state exp(-steps to success / tau), or linearly
-1 - steps to success / value_max_steps (0 where the episode failed), and fits `policies.chooser.ValueModel` on the latest labels (a ring of `buffer_size` states);
+steps with the current chooser, labels every state exp(-steps to success / tau) (0 where the episode
+failed), and fits `policies.chooser.ValueModel` on the latest labels (a ring of `buffer_size` states);
 the chooser then plays the candidate whose predicted end state the value ranks best. Each iteration is a
 step of policy iteration: the value of the chooser of the iteration before. Episodes use training seeds
 (`train_seed_start` on, consecutive), never an evaluation or held-out one.
@@ -67,8 +67,7 @@ class ValueFit(Resumable):
         self.episodes += cfg.value_episodes
         finished_max.extend(e.max_reward for e in summary.episodes)
         finished_success.extend(e.success for e in summary.episodes)
-        horizon = cfg.value_max_steps if cfg.value_label == "linear" else None
-        states, values = value_labels(summary, cfg.value_tau, horizon)
+        states, values = value_labels(summary, cfg.value_tau)
         self.replay.add(state=torch.as_tensor(states), value=torch.as_tensor(values))
         loss = self._fit()
         self.agent.policy.outcome.rank_by_value = True
@@ -98,15 +97,13 @@ class ValueFit(Resumable):
         return float(np.mean(losses[-100:]))
 
 
-def value_labels(summary: RolloutSummary, tau: float, horizon: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Every recorded state [N, 5] (float32) and its label [N]: exp(-steps to success / tau), or with a `horizon`
-    1 - steps to success / horizon; 0 in a failed episode."""
+def value_labels(summary: RolloutSummary, tau: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every recorded state [N, 5] (float32) and its label [N]: exp(-steps to success / tau), 0 in a failed episode."""
     success = {e.seed: e.success for e in summary.episodes}
     states, values = [], []
     for trajectory in summary.trajectories:
         steps = len(trajectory.states)
         to_go = steps - np.arange(steps)
-        label = np.exp(-to_go / tau) if horizon is None else 1 - to_go / horizon
-        values.append(label if success[trajectory.seed] else np.zeros(steps))
+        values.append(np.exp(-to_go / tau) if success[trajectory.seed] else np.zeros(steps))
         states.append(trajectory.states)
     return np.concatenate(states).astype(np.float32), np.concatenate(values).astype(np.float32)
