@@ -174,5 +174,7 @@ def test_torch_queue_limit_counts_num_steps(chooser_models: Path) -> None:
         refused = json.loads(next(body for status, body in costly if status == 503))["detail"]
         from acting import read_card
 
-        unit = read_card(chooser_models / "flow.json").network_evaluations(100)  # 100 steps, times the candidates of a chooser
-        assert unit == 64 * 100 + 64 * 4 * 2 and "cost units" in refused and f"{unit} here" in refused
+        card = read_card(chooser_models / "flow.json")
+        k = card.architecture["outcome_candidates"]
+        unit = card.network_evaluations(100)  # 100 steps, times the candidates of a chooser
+        assert unit == k * 100 + k * 4 * 2 and "cost units" in refused and f"{unit} here" in refused
