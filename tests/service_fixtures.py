@@ -16,7 +16,7 @@ import httpx
 REPO = Path(__file__).resolve().parents[1]
 # PUSHT_SHIPPED_MODELS points the "shipped models" tests at another folder (e.g. a candidate export).
 SHIPPED_MODELS = Path(os.environ.get("PUSHT_SHIPPED_MODELS", REPO / "models"))
-# The shipped outcome chooser (256 candidates x 10 flow steps at 4 stretches, start noise), served as `flow` beside mse by
+# The shipped outcome chooser (its candidates x 10 flow steps at 4 stretches, start noise), served as `flow` beside mse by
 # `cached_chooser_models`: the tests of step counts and noise costs need a flow whose chunk costs many evaluations.
 CHOOSER = SHIPPED_MODELS / "flow-chooser"
 

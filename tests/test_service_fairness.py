@@ -158,7 +158,7 @@ def test_work_of_clients_that_hung_up_is_dropped() -> None:
 @pytest.mark.slow
 def test_torch_queue_limit_counts_num_steps(chooser_models: Path) -> None:
     """torch backend, 4-row requests: at num_steps=100 a burst overflows the cost limit (503); at 10 it fits."""
-    # the chooser: 256 candidates of 10 steps at 4 stretches, each scored by the outcome model and the value, so the cost of a step count is large
+    # the chooser: its candidates of 10 steps at 4 stretches, each scored by the outcome model and the value, so the cost of a step count is large
     env = {"PUSHT_MODELS_DIR": str(chooser_models), "PUSHT_BACKEND": "torch", "PUSHT_MAX_STATES": "4", "PUSHT_QUEUE_LIMIT": "1"}
     with UvicornProcess(env) as srv:  # limit: 32 requests x 4 rows x 10 steps = 1,280 cost units
 
