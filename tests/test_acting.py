@@ -78,7 +78,7 @@ def test_step_counts_each_backend_can_run(chooser_models):
     assert "applies to flow policies" in mse.check_num_steps(4)
     # the chooser picks among K candidates at 4 stretches: each candidate takes the flow's steps, each stretch of it
     # one outcome-model pass and one value pass
-    k = json.loads((chooser_models / "flow.json").read_text())["architecture"]["outcome_candidates"]
+    k = acting.read_card(chooser_models / "flow.json").architecture["outcome_candidates"]
     assert onnx.network_evaluations() == k * 10 + k * 4 * 2 and torch_policy.network_evaluations(4) == k * 4 + k * 4 * 2
     assert mse.network_evaluations() == 1
     with pytest.raises(ValueError, match="unrolls 10 flow steps"):

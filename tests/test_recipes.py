@@ -173,6 +173,6 @@ def test_every_shipped_card_cites_its_recipe_and_names_no_missing_path() -> None
         )
     defaults = [p.stem for p in cards if json.loads(p.read_text()).get("default")]
     assert defaults == ["flow-chooser"]
-    # one command, under 3 hours on 2 cores: 6,092 s on one machine, 8,519 s on a slower one, 9,873 s for the shipped
-    # run (its value stage on 1 thread beside another run; docs/findings.md)
+    # one command, under 3 hours on 2 cores: 6,092 s on one machine, 8,519 s on a slower one, 10,042 s for the shipped
+    # run (its value stage on 1 thread beside other work; docs/findings.md)
     assert json.loads((REPO / "models" / "flow-chooser.json").read_text())["stages_wall_time_s"] <= 3 * 3600
