@@ -254,3 +254,43 @@ def test_a_value_fit_on_an_outcome_chooser_ranks_by_value_and_exports(tmp_path: 
 
     _, values = value_labels(Episodes, tau=10.0)
     np.testing.assert_allclose(values, [np.exp(-0.3), np.exp(-0.2), np.exp(-0.1), 0, 0, 0], rtol=1e-6)
+
+
+def test_a_dagger_fit_teaches_a_plain_flow_the_choosers_picks(tmp_path: Path) -> None:
+    """--algo dagger starts a plain flow from an outcome chooser's flow weights, labels every decision of its episodes
+    with the chooser's pick (the chooser playing all of the first round) and fits the student on them; the checkpoint
+    is that plain flow, whose noise changes its actions, and the chooser is untouched."""
+    from training.dagger_fit import DaggerFit
+    from training.outcome_fit import FlowChooser
+
+    with pytest.raises(ValueError, match="learns from an outcome chooser"):
+        finetune(_tiny(tmp_path, name="bad", algo="dagger"))
+    chooser = finetune(_tiny(tmp_path, iterations=1, eval_every=0)).dir / "last"
+    settings = dict(name="d", algo="dagger", init=str(chooser), iterations=2, eval_every=2, num_envs=3)
+    cfg = _tiny(tmp_path, **settings, dagger_episodes=3, dagger_updates=4, dagger_teacher_share=0.5)
+    run = finetune(cfg).dir
+    card = load_card(run / "last")
+    assert card["kind"] == "flow" and card["finished"] and card["architecture"].get("outcome_dims") is None
+    train = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    train = [r for r in train if r["type"] == "train"]
+    assert [r["teacher_share"] for r in train] == [1.0, 0.5] and [r["episodes"] for r in train] == [3, 6]
+    assert 0 < train[0]["labels"] < train[1]["labels"]
+    student, _ = load_checkpoint(run / "last")
+    teacher, _ = load_checkpoint(chooser)
+    flow_weights = {k: v for k, v in teacher.state_dict().items() if not k.startswith("outcome.")}
+    assert set(student.state_dict()) == set(flow_weights)
+    assert any(not torch.equal(v, student.state_dict()[k]) for k, v in flow_weights.items() if "normalizer" not in k)
+    # the labels are the chooser's picks, in the student's (= the chooser's) normalized units
+    agent = FlowChooser(teacher, load_card(chooser), cfg)
+    fit = DaggerFit(agent, cfg, torch.Generator().manual_seed(0))
+    states = np.array([[200, 300, 250, 250, 0.5], [100, 100, 300, 300, 1.0]], dtype=np.float32)
+    fit._labelling_act(share=1.0)(states, [5, 6])
+    from pusht.seeding import row_noise
+
+    with torch.no_grad():
+        picked = teacher.sample_actions(teacher.policy_state(torch.from_numpy(states)), torch.from_numpy(row_noise([5, 6])))
+    torch.testing.assert_close(fit.replay.data["x0"][:2], picked.flatten(1))
+    acting = load_acting_policy(run / "last")
+    with torch.no_grad():
+        one, two = (acting(torch.from_numpy(states), torch.from_numpy(row_noise([s, s + 1]))) for s in (1, 7))
+    assert not torch.allclose(one, two)

@@ -8,7 +8,8 @@ candidate chunks (each also at `--stretches`, faster); the served flow then play
 predicts closest to the goal. `--init` may be such a chooser, whose model the fit goes on fitting; with
 `--algo value` (`training.value_fit`) the chooser's value of time is fitted on its own episodes, and the
 chooser then plays the candidate whose predicted end state it values most. The
-flow's weights never change. One decision is one 12-action chunk executed open loop in `num_envs` envs
+flow's weights never change, except in `--algo dagger` (`training.dagger_fit`), which teaches a copy of them,
+a plain flow, the picks of the chooser `--init`. One decision is one 12-action chunk executed open loop in `num_envs` envs
 (`training.chunk_env`), on training seeds disjoint from every evaluation and held-out range. Periodic
 evaluation uses `training.evaluate` on seeds 400000.. (never held out). Each checkpoint is a flow
 checkpoint with `outcome_dims` in its architecture: export, ship, the service and the client take it
@@ -25,6 +26,7 @@ import torch
 
 from policies.checkpoint import git_commit, load_checkpoint, require_state_only, save_checkpoint
 from training.chunk_env import ChunkVectorEnv
+from training.dagger_fit import DaggerFit
 from training.evaluate import evaluate_policy
 from training.finetune_config import RESUMABLE_CHANGES, FinetuneConfig, parse_config
 from training.outcome_fit import FlowChooser, OutcomeFit
@@ -70,7 +72,8 @@ def finetune(cfg: FinetuneConfig):
 
 
 class _FineTuning:
-    """One fine-tuning's state: the chooser, its outcome fit, the envs and the run folder."""
+    """One fine-tuning's state: the chooser, its fit (`algorithm`, whose `trained` is saved and evaluated), the envs and
+    the run folder."""
 
     def __init__(self, cfg: FinetuneConfig) -> None:
         self.cfg = cfg
@@ -82,7 +85,8 @@ class _FineTuning:
         require_state_only(base_card, cfg.init, "fine-tuning")
         self.agent = FlowChooser(base, base_card, cfg)
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        self.algorithm = (ValueFit if cfg.algo == "value" else OutcomeFit)(self.agent, cfg, self.generator)
+        learner = {"outcome": OutcomeFit, "value": ValueFit, "dagger": DaggerFit}[cfg.algo]
+        self.algorithm = learner(self.agent, cfg, self.generator)
         self.run = Run.start(
             cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite, may_change=RESUMABLE_CHANGES
         )
@@ -136,7 +140,7 @@ class _FineTuning:
 
     def evaluate(self, iteration: int) -> dict:
         cfg = self.cfg
-        summary = evaluate_policy(self.agent.acting, episodes=cfg.eval_episodes, seed=cfg.eval_seed)
+        summary = evaluate_policy(self.algorithm.trained.acting, episodes=cfg.eval_episodes, seed=cfg.eval_seed)
         record = {
             "type": "eval",
             "step": iteration,
@@ -156,8 +160,8 @@ class _FineTuning:
         evaluation = next((r for r in reversed(run.records) if r["type"] == "eval"), None)
         save_checkpoint(
             str(run.dir / "last"),
-            self.agent.policy,
-            self.agent.normalization,
+            self.algorithm.trained.policy,
+            self.algorithm.trained.normalization,
             **self.card,
             steps=iteration,
             wall_time_s=run.elapsed_s,

@@ -16,7 +16,7 @@ PROG = "python -m training.finetune"
 # fields that do not change what a run computes, so --resume accepts new values
 RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_every")
 # Noise-space PPO (DSRL) and a Q-critic picking start noises were tried and dropped (docs/findings.md).
-ALGOS = ("outcome", "value")
+ALGOS = ("outcome", "value", "dagger")
 
 
 @dataclass
@@ -32,7 +32,8 @@ class FinetuneConfig:
     algo: str = option(
         "outcome",
         "what is fitted: outcome (a one-chunk model of the block that picks the best of --candidates chunks); value (the "
-        "chooser's value of time, by policy iteration on its own episodes; --init must be an outcome chooser)",
+        "chooser's value of time, by policy iteration on its own episodes; --init must be an outcome chooser); dagger (a plain "
+        "flow, from the chooser's flow weights, taught the picks of the chooser --init at its own states)",
         choices=ALGOS,
     )
     name: str = option("flow-outcome", "run name; outputs go to OUT_DIR/NAME")
@@ -57,7 +58,13 @@ class FinetuneConfig:
     value_episodes: int = option(1024, "value: episodes played by the current chooser per iteration")
     value_max_steps: int = option(600, "value: step limit of those episodes (past 300, so slow successes are labelled too)")
     value_updates: int = option(12_000, "value: minibatches of regression per iteration (learning rate annealed to 0)")
-    flow_num_steps: int = option(10, "Euler steps of the frozen flow")
+    dagger_episodes: int = option(512, "dagger: episodes per iteration, each chunk played by the student or the chooser")
+    dagger_teacher_share: float = option(
+        0.25, "dagger: share of chunks the chooser plays after the first iteration (in which it plays all)"
+    )
+    dagger_updates: int = option(4000, "dagger: minibatches of flow matching on all labels per iteration")
+    dagger_lr: float = option(1e-4, "dagger: AdamW learning rate of the student flow")
+    flow_num_steps: int = option(10, "Euler steps of the frozen flow (and of the dagger student)")
     train_seed_start: int = option(10_000_000, "first training episode seed (episodes use consecutive seeds)")
     eval_every: int = option(50, "evaluate (and checkpoint) every N iterations (0: only at the end)")
     eval_episodes: int = option(200, "episodes per evaluation")
@@ -96,18 +103,22 @@ class FinetuneConfig:
             "value_episodes",
             "value_max_steps",
             "value_updates",
+            "dagger_episodes",
+            "dagger_updates",
         )
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not self.critic_lr > 0:
-            raise ValueError(f"critic_lr must be > 0, got {self.critic_lr}")
+        for name in ("critic_lr", "dagger_lr"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.resume and self.overwrite:
             raise ValueError("--resume and --overwrite exclude each other")
         if self.eval_every < 0 or self.train_seed_start < 0 or self.eval_seed < 0 or self.seed < 0:
             raise ValueError("eval_every, train_seed_start, eval_seed and seed must be >= 0")
-        if not 0 <= self.explore <= 1:
-            raise ValueError(f"explore must be in [0, 1], got {self.explore}")
+        for name in ("explore", "dagger_teacher_share"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if not self.value_tau > 0:
             raise ValueError(f"value_tau must be > 0, got {self.value_tau}")
         self.outcome_dims_list()
@@ -148,7 +159,7 @@ def parse_config(argv: list[str] | None = None) -> FinetuneConfig:
         FinetuneConfig,
         PROG,
         "Fine-tune a flow beyond imitation, its weights frozen: fit a one-chunk outcome model that chooses among its chunks, "
-        "or that chooser's value of time.",
+        "or that chooser's value of time; or teach a plain flow the chooser's picks (dagger).",
     )
     args = parser.parse_args(argv)
     try:

@@ -21,7 +21,8 @@ __all__ = ["FlowChooser", "OutcomeFit", "Resumable"]
 
 
 class Resumable:
-    """What a resumable checkpoint of a learner holds: its modules, optimizers and replays, by name."""
+    """What a resumable checkpoint of a learner holds: its modules, optimizers and replays, by name. A learner's
+    `trained` (policy, normalization, acting) is what its run saves and evaluates."""
 
     def parts(self) -> tuple[dict, dict, dict]:
         """(modules, optimizers, replays) by name."""
@@ -82,8 +83,12 @@ class FlowChooser:
 
 
 def _chooser_architecture(arch: dict, cfg: FinetuneConfig) -> dict:
-    """What the fit adds to the init's architecture: its outcome chooser as configured, or for `--algo value` (which
-    starts from an outcome chooser, kept as it is) a value model."""
+    """What the fit adds to the init's architecture: its outcome chooser as configured, for `--algo value` (which
+    starts from an outcome chooser, kept as it is) a value model, for `--algo dagger` (the chooser teaches) nothing."""
+    if cfg.algo == "dagger":
+        if arch.get("outcome_dims") is None:
+            raise ValueError(f"{cfg.init}: --algo dagger learns from an outcome chooser (a flow with outcome_dims)")
+        return {}  # the chooser teaches as it is
     if cfg.algo == "value":
         if arch.get("outcome_dims") is None:
             raise ValueError(f"{cfg.init}: --algo value starts from an outcome chooser (a flow with outcome_dims)")
@@ -109,6 +114,7 @@ class OutcomeFit(Resumable):
 
     def __init__(self, agent: FlowChooser, cfg: FinetuneConfig, generator: torch.Generator) -> None:
         self.agent, self.cfg, self.generator = agent, cfg, generator
+        self.trained = agent
         self.selector = agent.policy.outcome
         self.opt = torch.optim.Adam(self.selector.model.parameters(), lr=cfg.critic_lr)
         self.replay = ReplayBuffer(

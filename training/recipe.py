@@ -43,6 +43,8 @@ SCALED = {
         "log_every",
         "value_episodes",
         "value_updates",
+        "dagger_episodes",
+        "dagger_updates",
     ),
     "collect": ("episodes",),
     "ship": ("episodes",),

@@ -32,6 +32,7 @@ class ValueFit(Resumable):
 
     def __init__(self, agent: FlowChooser, cfg: FinetuneConfig, generator: torch.Generator) -> None:
         self.agent, self.cfg, self.generator = agent, cfg, generator
+        self.trained = agent
         self.value = agent.policy.outcome.value
         self.replay = ReplayBuffer(cfg.buffer_size, agent.policy.state_dim, 0, self.FIELDS)
         self.episodes = 0  # played so far: the next iteration starts at train_seed_start + episodes
@@ -73,6 +74,7 @@ class ValueFit(Resumable):
         self.agent.policy.outcome.rank_by_value = True
         lengths = [e.length for e in summary.episodes if e.success]
         return {
+            "episodes": self.episodes,
             "value_loss": loss,
             "labels": self.replay.size,
             "collect_mean_steps_to_success": float(np.mean(lengths)) if lengths else None,

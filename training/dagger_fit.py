@@ -1,0 +1,120 @@
+"""`training.finetune --algo dagger`: distil an outcome chooser into a plain flow, labelled by the chooser at the flow's own states.
+
+The chooser plays the best of its flow's candidate chunks; its flow alone samples any of them. Here a student
+flow, starting from the chooser's own flow weights, learns the chooser's picks by DAgger: each iteration plays
+`dagger_episodes` episodes (training seeds) in which each chunk comes from the chooser with probability
+`dagger_teacher_share` (always in the first iteration) and otherwise from the student, and every decision's state
+is labelled with the chunk the chooser picks there. The student is then fitted by flow matching on all labels so
+far (`dagger_updates` minibatches). The chooser never changes; the checkpoint is the student, a plain flow-matching
+sampler whose noise changes its actions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from policies.base import ActingPolicy
+from policies.factory import build_policy
+from pusht.rollout import row_noise, run_episodes
+from pusht.spec import ACTION_HIGH, ACTION_LOW
+from training.chunk_env import ChunkVectorEnv
+from training.finetune_config import FinetuneConfig
+from training.outcome_fit import FlowChooser, Resumable
+from training.replay import ReplayBuffer
+
+__all__ = ["DaggerFit", "Student"]
+
+CHOOSER_KEYS = ("outcome_dims", "outcome_candidates", "outcome_stretches", "value_dims")
+"""the architecture keys of a flow's chooser: the student's architecture is the chooser's without them"""
+
+
+@dataclass
+class Student:
+    """What a fit trains, saves and evaluates (for the outcome and value fits, the chooser itself: `FlowChooser`)."""
+
+    policy: torch.nn.Module
+    normalization: dict
+    acting: ActingPolicy
+
+
+class DaggerFit(Resumable):
+    """DAgger of a plain flow toward the frozen chooser `agent`: label the chooser's picks at the visited states, fit."""
+
+    def __init__(self, agent: FlowChooser, cfg: FinetuneConfig, generator: torch.Generator) -> None:
+        self.agent, self.cfg, self.generator = agent, cfg, generator
+        chooser = agent.policy
+        plain = {k: v for k, v in chooser.architecture.items() if k not in CHOOSER_KEYS}
+        policy = build_policy("flow", **plain)
+        policy.load_state_dict({k: v for k, v in chooser.state_dict().items() if not k.startswith("outcome.")})
+        policy.normalizer.set(chooser.normalizer)
+        self.trained = Student(policy, policy.normalizer.to_dict(), ActingPolicy(policy, num_steps=cfg.flow_num_steps))
+        self.opt = torch.optim.AdamW(policy.parameters(), lr=cfg.dagger_lr, weight_decay=1e-4)
+        self.replay = ReplayBuffer(
+            cfg.buffer_size, chooser.state_dim, chooser.horizon * chooser.action_dim, {"state": 0, "x0": 0}
+        )
+        self.rng = np.random.default_rng(cfg.seed)
+        self.episodes = 0  # played so far: the next iteration starts at train_seed_start + episodes
+
+    def parts(self) -> tuple[dict, dict, dict]:
+        """(modules, optimizers, replays) by name: the student, its optimizer, the labels (chunks as `x0`)."""
+        return {"student": self.trained.policy}, {"student": self.opt}, {"labels": self.replay}
+
+    def state(self) -> tuple[dict[str, torch.Tensor], dict]:
+        """As `Resumable.state`, plus the episodes played and the stream that picks who plays each chunk."""
+        tensors, extra = super().state()
+        return tensors, {**extra, "dagger_episodes_played": self.episodes, "numpy_rng": self.rng.bit_generator.state}
+
+    def load_state(self, tensors: dict[str, torch.Tensor], extra: dict) -> None:
+        """Restore what `state` saved."""
+        super().load_state(tensors, extra)
+        self.episodes = int(extra["dagger_episodes_played"])
+        self.rng.bit_generator.state = extra["numpy_rng"]
+
+    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
+        """One round: episodes played by the student and the chooser, every decision labelled; the student refitted."""
+        cfg = self.cfg
+        share = 1.0 if self.episodes == 0 else cfg.dagger_teacher_share
+        first = cfg.train_seed_start + self.episodes
+        summary = run_episodes(self._labelling_act(share), range(first, first + cfg.dagger_episodes), cfg.num_envs)
+        self.episodes += cfg.dagger_episodes
+        finished_max.extend(e.max_reward for e in summary.episodes)
+        finished_success.extend(e.success for e in summary.episodes)
+        return {"episodes": self.episodes, "flow_loss": self._fit(), "labels": self.replay.size, "teacher_share": share}
+
+    def _labelling_act(self, share: float):
+        """The rollout's act: every row labelled with the chooser's pick, played by the chooser in a `share` of rows."""
+        chooser, student, steps = self.agent.policy, self.trained.policy, self.agent.num_steps
+        student.eval()
+
+        def act(states: np.ndarray, seeds: list[int]) -> np.ndarray:
+            state = torch.as_tensor(states, dtype=torch.float32)
+            noise = torch.as_tensor(row_noise(seeds))
+            with torch.no_grad():
+                # the student's normalizer is the chooser's, so the chooser's normalized pick is the student's label
+                label = chooser.sample_actions(chooser.policy_state(state), noise=noise, num_steps=steps)
+                taught = torch.clamp(chooser.normalizer.actions(state, label), ACTION_LOW, ACTION_HIGH)
+                own = student.act(state, noise, self.cfg.flow_num_steps)
+            self.replay.add(state=state, x0=label.flatten(1))
+            by_chooser = torch.as_tensor(self.rng.random(len(state)) < share)[:, None, None]
+            return torch.where(by_chooser, taught, own).numpy()
+
+        return act
+
+    def _fit(self) -> float:
+        """`dagger_updates` minibatches of flow matching on the labels; the mean loss of the last 100."""
+        cfg, student = self.cfg, self.trained.policy
+        student.train()
+        losses = []
+        for _ in range(cfg.dagger_updates):
+            batch = self.replay.sample(cfg.batch_size, self.generator)
+            chunk_n = batch["x0"].reshape(-1, student.horizon, student.action_dim)
+            loss = student.normalized_loss(student.policy_state(batch["state"]), chunk_n, generator=self.generator)
+            self.opt.zero_grad(set_to_none=True)
+            loss.backward()
+            self.opt.step()
+            losses.append(float(loss.detach()))
+        student.eval()
+        return float(np.mean(losses[-100:]))
