@@ -290,6 +290,15 @@ def test_a_dagger_fit_teaches_a_plain_flow_the_choosers_picks(tmp_path: Path) ->
     with torch.no_grad():
         picked = teacher.sample_actions(teacher.policy_state(torch.from_numpy(states)), torch.from_numpy(row_noise([5, 6])))
     torch.testing.assert_close(fit.replay.data["x0"][:2], picked.flatten(1))
+    # a resumed fit takes back the student, its optimizer, the labels, the episodes played and who plays next
+    fit.episodes, _ = 3, fit._fit()
+    tensors, extra = fit.state()
+    resumed = DaggerFit(FlowChooser(teacher, load_card(chooser), cfg), cfg, torch.Generator())
+    resumed.load_state(tensors, json.loads(json.dumps(extra)))
+    assert resumed.episodes == 3 and resumed.replay.size == 2 and resumed.rng.random() == fit.rng.random()
+    for name, tensor in fit.trained.policy.state_dict().items():
+        assert torch.equal(tensor, resumed.trained.policy.state_dict()[name]), name
+    assert resumed.opt.state_dict()["state"].keys() == fit.opt.state_dict()["state"].keys()
     acting = load_acting_policy(run / "last")
     with torch.no_grad():
         one, two = (acting(torch.from_numpy(states), torch.from_numpy(row_noise([s, s + 1]))) for s in (1, 7))

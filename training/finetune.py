@@ -12,8 +12,8 @@ flow's weights never change, except in `--algo dagger` (`training.dagger_fit`), 
 a plain flow, the picks of the chooser `--init`. One decision is one 12-action chunk executed open loop in `num_envs` envs
 (`training.chunk_env`), on training seeds disjoint from every evaluation and held-out range. Periodic
 evaluation uses `training.evaluate` on seeds 400000.. (never held out). Each checkpoint is a flow
-checkpoint with `outcome_dims` in its architecture: export, ship, the service and the client take it
-as they take any flow.
+checkpoint, with `outcome_dims` in its architecture but for dagger's plain student: export, ship, the
+service and the client take it as they take any flow.
 """
 
 from __future__ import annotations
