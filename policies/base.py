@@ -136,6 +136,10 @@ class ChunkPolicy(nn.Module):
         """Env-unit actions [B, H, A], clipped to the arena, for env-unit states [B, S] (and the states a step before, where the
         architecture takes them); MSE ignores `noise` and `num_steps`."""
         chunk_n = self.sample_actions(self.policy_state(state, prev_state), noise=noise, num_steps=num_steps)
+        return self.arena_actions(state, chunk_n)
+
+    def arena_actions(self, state: torch.Tensor, chunk_n: torch.Tensor) -> torch.Tensor:
+        """Env-unit actions [B, H, A], clipped to the arena, of normalized chunks [B, H, A] from env-unit states [B, S]."""
         return torch.clamp(self.normalizer.actions(state, chunk_n), ACTION_LOW, ACTION_HIGH)
 
 

@@ -14,7 +14,7 @@ from torch.nn import functional as F
 
 from policies.base import ChunkPolicy
 from policies.configuration import architecture_with_defaults, check_architecture
-from pusht.spec import ACTION_HIGH, ACTION_LOW, DEFAULT_NUM_STEPS
+from pusht.spec import DEFAULT_NUM_STEPS
 
 # Angular frequencies (rad per unit t) of the sinusoidal time embedding: slow enough to stay monotonic
 # over t in [0, 1], fast enough to separate nearby Euler steps.
@@ -122,4 +122,4 @@ class FlowPolicy(ChunkPolicy):
     ) -> torch.Tensor:
         """Clipped env-unit actions [B, H, A] integrated from a given Euler start x0 (fine-tuning acts this way)."""
         chunk_n = self.integrate(self.policy_state(state, prev_state), x0, num_steps)
-        return torch.clamp(self.normalizer.actions(state, chunk_n), ACTION_LOW, ACTION_HIGH)
+        return self.arena_actions(state, chunk_n)

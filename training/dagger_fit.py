@@ -19,7 +19,6 @@ import torch
 from policies.base import ActingPolicy
 from policies.factory import build_policy
 from pusht.rollout import row_noise, run_episodes
-from pusht.spec import ACTION_HIGH, ACTION_LOW
 from training.chunk_env import ChunkVectorEnv
 from training.finetune_config import FinetuneConfig
 from training.outcome_fit import FlowChooser, Resumable
@@ -95,7 +94,7 @@ class DaggerFit(Resumable):
             with torch.no_grad():
                 # the student's normalizer is the chooser's, so the chooser's normalized pick is the student's label
                 label = chooser.sample_actions(chooser.policy_state(state), noise=noise, num_steps=steps)
-                taught = torch.clamp(chooser.normalizer.actions(state, label), ACTION_LOW, ACTION_HIGH)
+                taught = chooser.arena_actions(state, label)
                 own = student.act(state, noise, self.cfg.flow_num_steps)
             self.replay.add(state=state, x0=label.flatten(1))
             by_chooser = torch.as_tensor(self.rng.random(len(state)) < share)[:, None, None]

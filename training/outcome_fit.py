@@ -85,13 +85,11 @@ class FlowChooser:
 def _chooser_architecture(arch: dict, cfg: FinetuneConfig) -> dict:
     """What the fit adds to the init's architecture: its outcome chooser as configured, for `--algo value` (which
     starts from an outcome chooser, kept as it is) a value model, for `--algo dagger` (the chooser teaches) nothing."""
+    if cfg.algo in ("value", "dagger") and arch.get("outcome_dims") is None:
+        raise ValueError(f"{cfg.init}: --algo {cfg.algo} starts from an outcome chooser (a flow with outcome_dims)")
     if cfg.algo == "dagger":
-        if arch.get("outcome_dims") is None:
-            raise ValueError(f"{cfg.init}: --algo dagger learns from an outcome chooser (a flow with outcome_dims)")
         return {}  # the chooser teaches as it is
     if cfg.algo == "value":
-        if arch.get("outcome_dims") is None:
-            raise ValueError(f"{cfg.init}: --algo value starts from an outcome chooser (a flow with outcome_dims)")
         if arch.get("value_dims") is not None and list(arch["value_dims"]) != cfg.value_dims_list():
             raise ValueError(f"{cfg.init}: its value has value_dims {arch['value_dims']}; --value-dims must match")
         return {"value_dims": cfg.value_dims_list()}
