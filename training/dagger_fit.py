@@ -19,7 +19,6 @@ import torch
 from policies.base import ActingPolicy
 from policies.factory import build_policy
 from pusht.rollout import row_noise, run_episodes
-from training.chunk_env import ChunkVectorEnv
 from training.finetune_config import FinetuneConfig
 from training.outcome_fit import FlowChooser, Resumable
 from training.replay import ReplayBuffer
@@ -72,7 +71,7 @@ class DaggerFit(Resumable):
         self.episodes = int(extra["dagger_episodes_played"])
         self.rng.bit_generator.state = extra["numpy_rng"]
 
-    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
+    def iterate(self, finished_max: list, finished_success: list) -> dict:
         """One round: episodes played by the student and the chooser, every decision labelled; the student refitted."""
         cfg = self.cfg
         share = 1.0 if self.episodes == 0 else cfg.dagger_teacher_share

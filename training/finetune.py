@@ -10,7 +10,7 @@ predicts closest to the goal. `--init` may be such a chooser, whose model the fi
 chooser then plays the candidate whose predicted end state it values most. The
 flow's weights never change, except in `--algo dagger` (`training.dagger_fit`), which teaches a copy of them,
 a plain flow, the picks of the chooser `--init`. One decision is one 12-action chunk executed open loop in `num_envs` envs
-(`training.chunk_env`), on training seeds disjoint from every evaluation and held-out range. Periodic
+(`training.chunk_env`, `pusht.rollout`), on training seeds disjoint from every evaluation and held-out range. Periodic
 evaluation uses `training.evaluate` on seeds 400000.. (never held out). Each checkpoint is a flow
 checkpoint, with `outcome_dims` in its architecture but for dagger's plain student: export, ship, the
 service and the client take it as they take any flow.
@@ -25,7 +25,6 @@ import numpy as np
 import torch
 
 from policies.checkpoint import git_commit, load_checkpoint, require_state_only, save_checkpoint
-from training.chunk_env import ChunkVectorEnv
 from training.dagger_fit import DaggerFit
 from training.evaluate import evaluate_policy
 from training.finetune_config import RESUMABLE_CHANGES, FinetuneConfig, parse_config
@@ -72,8 +71,8 @@ def finetune(cfg: FinetuneConfig):
 
 
 class _FineTuning:
-    """One fine-tuning's state: the chooser, its fit (`algorithm`, whose `trained` is saved and evaluated), the envs and
-    the run folder."""
+    """One fine-tuning's state: the chooser, its fit (`algorithm`, whose `trained` is saved and evaluated), the run
+    folder."""
 
     def __init__(self, cfg: FinetuneConfig) -> None:
         self.cfg = cfg
@@ -97,16 +96,14 @@ class _FineTuning:
             "init": str(cfg.init),
             "reproduce": {"finetune": cfg.command()},
         }
-        self.first, self.episodes_before = 1, 0
+        self.first = 1
         state = self.run.load_state()
         if state is not None:
             step, tensors, extra = state
             self.algorithm.load_state(tensors, extra)
             unpack_rng(tensors, {"main": self.generator})
-            self.first, self.episodes_before = step + 1, extra["episodes_started"]
+            self.first = step + 1
             self.run.log({"type": "resume", "step": step})
-        # training seeds go on where they stopped: a resumed run never replays an episode seed
-        self.envs = ChunkVectorEnv(cfg.num_envs, cfg.train_seed_start + self.episodes_before)
         self.bar = _progress_bar(cfg.iterations, cfg.progress, self.first - 1)
         self.finished_max: list[float] = []
         self.finished_success: list[bool] = []
@@ -116,12 +113,11 @@ class _FineTuning:
     def iterate(self, iteration: int) -> None:
         """One outcome-fit iteration, its log record, the periodic evaluation and resumable state."""
         cfg, run = self.cfg, self.run
-        stats = self.algorithm.iterate(self.envs, self.finished_max, self.finished_success)
+        stats = self.algorithm.iterate(self.finished_max, self.finished_success)
         if iteration % cfg.log_every == 0 or iteration == cfg.iterations:
             record = {
                 "type": "train",
                 "step": iteration,
-                "episodes": self.episodes_before + self.envs.episodes_started,
                 "episode_max_reward": float(np.mean(self.finished_max)) if self.finished_max else None,
                 "episode_success": float(np.mean(self.finished_success)) if self.finished_success else None,
                 "wall_time_s": run.elapsed_s,
@@ -170,11 +166,7 @@ class _FineTuning:
         )
         if not finished:
             tensors, extra = self.algorithm.state()
-            run.save_state(
-                iteration,
-                {**tensors, **pack_rng({"main": self.generator})},
-                {**extra, "episodes_started": self.episodes_before + self.envs.episodes_started},
-            )
+            run.save_state(iteration, {**tensors, **pack_rng({"main": self.generator})}, extra)
         _plot(run.records, run.dir / "learning_curve.png")
 
     def finish(self) -> None:

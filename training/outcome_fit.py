@@ -119,24 +119,35 @@ class OutcomeFit(Resumable):
             cfg.buffer_size, agent.policy.state_dim, agent.chunk_shape[0] * agent.chunk_shape[1], self.FIELDS
         )
         self.rng = np.random.default_rng(cfg.seed)
+        self.episodes_before = 0  # started before a resume: the envs go on at the next training seed
+        self.envs: ChunkVectorEnv | None = None  # built at the first iteration, after any resume
 
     def parts(self) -> tuple[dict, dict, dict]:
         """(modules, optimizers, replays) by name."""
         return {"outcome": self.selector.model}, {"outcome": self.opt}, {"labels": self.replay}
 
     def state(self) -> tuple[dict[str, torch.Tensor], dict]:
-        """As `Resumable.state`, plus the numpy stream that picks labelled envs and exploring ones."""
+        """As `Resumable.state`, plus the episodes started and the numpy stream that picks labelled envs and exploring ones."""
         tensors, extra = super().state()
-        return tensors, {**extra, "numpy_rng": self.rng.bit_generator.state}
+        return tensors, {**extra, "episodes_started": self.episodes, "numpy_rng": self.rng.bit_generator.state}
 
     def load_state(self, tensors: dict[str, torch.Tensor], extra: dict) -> None:
         """Restore what `state` saved."""
         super().load_state(tensors, extra)
+        self.episodes_before = int(extra["episodes_started"])
         self.rng.bit_generator.state = extra["numpy_rng"]
 
-    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
+    @property
+    def episodes(self) -> int:
+        """Episodes started so far: a resumed run never replays an episode seed."""
+        return self.episodes_before + (self.envs.episodes_started if self.envs is not None else 0)
+
+    def iterate(self, finished_max: list, finished_success: list) -> dict:
         """`rollout_decisions` decisions in every env, each followed by the updates; returns figures for the log."""
         agent, cfg, losses = self.agent, self.cfg, []
+        if self.envs is None:
+            self.envs = ChunkVectorEnv(cfg.num_envs, cfg.train_seed_start + self.episodes_before)
+        envs = self.envs
         for _ in range(cfg.rollout_decisions):
             states = torch.as_tensor(envs.obs, dtype=torch.float32)
             noise = torch.randn((envs.num_envs, *agent.chunk_shape), generator=self.generator)
@@ -155,7 +166,7 @@ class OutcomeFit(Resumable):
             finished_success.extend(result.finished_success)
             if self.replay.size >= cfg.batch_size:
                 losses.extend(self._update() for _ in range(cfg.updates_per_decision))
-        return {"outcome_loss": float(np.mean(losses)) if losses else None, "labels": self.replay.size}
+        return {"episodes": self.episodes, "outcome_loss": float(np.mean(losses)) if losses else None, "labels": self.replay.size}
 
     def _label(self, envs: ChunkVectorEnv, states: torch.Tensor, actions: np.ndarray) -> None:
         rows = self.rng.permutation(envs.num_envs)[: self.cfg.label_envs]

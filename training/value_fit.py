@@ -16,7 +16,6 @@ import numpy as np
 import torch
 
 from pusht.rollout import RolloutSummary
-from training.chunk_env import ChunkVectorEnv
 from training.evaluate import evaluate_policy
 from training.finetune_config import FinetuneConfig
 from training.outcome_fit import FlowChooser, Resumable
@@ -54,7 +53,7 @@ class ValueFit(Resumable):
         self.episodes = int(extra["value_episodes_played"])
         self.agent.policy.outcome.rank_by_value = self.episodes > 0
 
-    def iterate(self, envs: ChunkVectorEnv, finished_max: list, finished_success: list) -> dict:
+    def iterate(self, finished_max: list, finished_success: list) -> dict:
         """One round: the chooser's episodes (their results join `finished_*`), their labels, the value refitted."""
         cfg = self.cfg
         summary = evaluate_policy(
