@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import signal
 import subprocess
@@ -304,3 +305,19 @@ def test_a_dagger_fit_teaches_a_plain_flow_the_choosers_picks(tmp_path: Path) ->
     with torch.no_grad():
         one, two = (acting(torch.from_numpy(states), torch.from_numpy(row_noise([s, s + 1]))) for s in (1, 7))
     assert not torch.allclose(one, two)
+    # --dagger-teacher: the student is --init (here the student above), taught from its first round on at its own
+    # states, each fit's rate annealed to 0
+    more = _tiny(tmp_path, **settings | {"name": "d2", "init": str(run / "last"), "iterations": 1}, dagger_teacher=str(chooser))
+    more = dataclasses.replace(more, dagger_episodes=3, dagger_updates=4, dagger_teacher_share=0.0, dagger_lr_schedule="cosine")
+    again = DaggerFit(FlowChooser(teacher, load_card(chooser), more), more, torch.Generator().manual_seed(0))
+    for name, tensor in student.state_dict().items():
+        assert torch.equal(tensor, again.trained.policy.state_dict()[name]), name
+    record = again.iterate([], [])
+    assert (
+        record["teacher_share"] == 0.0
+        and record["episodes"] == 3
+        and again.opt.param_groups[0]["lr"] == pytest.approx(more.dagger_lr * 0.5 * (1 + np.cos(np.pi * 3 / 4)))
+    )  # the last of the 4 updates
+    assert load_card(finetune(more).dir / "last")["teacher"] == str(chooser)
+    with pytest.raises(ValueError, match="a plain flow of the architecture"):
+        DaggerFit(agent, dataclasses.replace(more, init=str(chooser)), torch.Generator())

@@ -1,22 +1,25 @@
 """`training.finetune --algo dagger`: distil an outcome chooser into a plain flow, labelled by the chooser at the flow's own states.
 
 The chooser plays the best of its flow's candidate chunks; its flow alone samples any of them. Here a student
-flow, starting from the chooser's own flow weights, learns the chooser's picks by DAgger: each iteration plays
-`dagger_episodes` episodes (training seeds) in which each chunk comes from the chooser with probability
-`dagger_teacher_share` (always in the first iteration) and otherwise from the student, and every decision's state
-is labelled with the chunk the chooser picks there. The student is then fitted by flow matching on all labels so
-far (`dagger_updates` minibatches). The chooser never changes; the checkpoint is the student, a plain flow-matching
-sampler whose noise changes its actions.
+flow, starting from the chooser's own flow weights (or from `--init` when `--dagger-teacher` names the chooser),
+learns the chooser's picks by DAgger: each iteration plays `dagger_episodes` episodes (training seeds) in which each
+chunk comes from the chooser with probability `dagger_teacher_share` (always in the first iteration of a student that
+starts from the chooser's flow) and otherwise from the student, and every decision's state is labelled with the chunk
+the chooser picks there. The student is then fitted by flow matching on all labels so far (`dagger_updates`
+minibatches, the rate constant or annealed to 0 in each fit). The chooser never changes; the checkpoint is the
+student, a plain flow-matching sampler whose noise changes its actions.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from policies.base import ActingPolicy
+from policies.checkpoint import load_checkpoint
 from policies.factory import build_policy
 from pusht.rollout import row_noise, run_episodes
 from training.finetune_config import FinetuneConfig
@@ -46,7 +49,7 @@ class DaggerFit(Resumable):
         chooser = agent.policy
         plain = {k: v for k, v in chooser.architecture.items() if k not in CHOOSER_KEYS}
         policy = build_policy("flow", **plain)
-        policy.load_state_dict({k: v for k, v in chooser.state_dict().items() if not k.startswith("outcome.")})
+        policy.load_state_dict(_student_weights(chooser, cfg))
         policy.normalizer.set(chooser.normalizer)
         self.trained = Student(policy, policy.normalizer.to_dict(), ActingPolicy(policy, num_steps=cfg.flow_num_steps))
         self.opt = torch.optim.AdamW(policy.parameters(), lr=cfg.dagger_lr, weight_decay=1e-4)
@@ -74,7 +77,7 @@ class DaggerFit(Resumable):
     def iterate(self, finished_max: list, finished_success: list) -> dict:
         """One round: episodes played by the student and the chooser, every decision labelled; the student refitted."""
         cfg = self.cfg
-        share = 1.0 if self.episodes == 0 else cfg.dagger_teacher_share
+        share = 1.0 if self.episodes == 0 and not cfg.dagger_teacher else cfg.dagger_teacher_share
         first = cfg.train_seed_start + self.episodes
         summary = run_episodes(self._labelling_act(share), range(first, first + cfg.dagger_episodes), cfg.num_envs)
         self.episodes += cfg.dagger_episodes
@@ -106,7 +109,10 @@ class DaggerFit(Resumable):
         cfg, student = self.cfg, self.trained.policy
         student.train()
         losses = []
-        for _ in range(cfg.dagger_updates):
+        for update in range(cfg.dagger_updates):
+            if cfg.dagger_lr_schedule == "cosine":
+                for group in self.opt.param_groups:
+                    group["lr"] = cfg.dagger_lr * 0.5 * (1 + math.cos(math.pi * update / cfg.dagger_updates))
             batch = self.replay.sample(cfg.batch_size, self.generator)
             chunk_n = batch["x0"].reshape(-1, student.horizon, student.action_dim)
             loss = student.normalized_loss(student.policy_state(batch["state"]), chunk_n, generator=self.generator)
@@ -116,3 +122,19 @@ class DaggerFit(Resumable):
             losses.append(float(loss.detach()))
         student.eval()
         return float(np.mean(losses[-100:]))
+
+
+def _student_weights(chooser: torch.nn.Module, cfg: FinetuneConfig) -> dict[str, torch.Tensor]:
+    """The student's first weights: the chooser's flow, or the plain flow `--init` when `--dagger-teacher` is the chooser."""
+    flow = {k: v for k, v in chooser.state_dict().items() if not k.startswith("outcome.")}
+    if not cfg.dagger_teacher:
+        return flow
+    student, card = load_checkpoint(cfg.init)
+    weights = student.state_dict()
+    if (
+        card["kind"] != "flow"
+        or "outcome_dims" in card["architecture"]
+        or {k: v.shape for k, v in weights.items()} != {k: v.shape for k, v in flow.items()}
+    ):
+        raise ValueError(f"{cfg.init}: a dagger student must be a plain flow of the architecture of the chooser's flow")
+    return weights

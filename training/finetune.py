@@ -8,8 +8,8 @@ candidate chunks (each also at `--stretches`, faster); the served flow then play
 predicts closest to the goal. `--init` may be such a chooser, whose model the fit goes on fitting; with
 `--algo value` (`training.value_fit`) the chooser's value of time is fitted on its own episodes, and the
 chooser then plays the candidate whose predicted end state it values most. The
-flow's weights never change, except in `--algo dagger` (`training.dagger_fit`), which teaches a copy of them,
-a plain flow, the picks of the chooser `--init`. One decision is one 12-action chunk executed open loop in `num_envs` envs
+flow's weights never change, except in `--algo dagger` (`training.dagger_fit`), which teaches a copy of them
+(or the plain flow `--init`, when `--dagger-teacher` names the chooser) the chooser's picks. One decision is one 12-action chunk executed open loop in `num_envs` envs
 (`training.chunk_env`, `pusht.rollout`), on training seeds disjoint from every evaluation and held-out range. Periodic
 evaluation uses `training.evaluate` on seeds 400000.. (never held out). Each checkpoint is a flow
 checkpoint, with `outcome_dims` in its architecture but for dagger's plain student: export, ship, the
@@ -78,10 +78,10 @@ class _FineTuning:
         self.cfg = cfg
         torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
-        base, base_card = load_checkpoint(cfg.init)
+        base, base_card = load_checkpoint(cfg.chooser_stem())
         if base_card["kind"] != "flow":
-            raise ValueError(f"{cfg.init} is a {base_card['kind']} checkpoint; fine-tuning needs a flow")
-        require_state_only(base_card, cfg.init, "fine-tuning")
+            raise ValueError(f"{cfg.chooser_stem()} is a {base_card['kind']} checkpoint; fine-tuning needs a flow")
+        require_state_only(base_card, cfg.chooser_stem(), "fine-tuning")
         self.agent = FlowChooser(base, base_card, cfg)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         learner = {"outcome": OutcomeFit, "value": ValueFit, "dagger": DaggerFit}[cfg.algo]
@@ -94,6 +94,7 @@ class _FineTuning:
             "config": cfg.to_dict(),
             "git_commit": git_commit(),
             "init": str(cfg.init),
+            **({"teacher": cfg.dagger_teacher} if cfg.dagger_teacher else {}),
             "reproduce": {"finetune": cfg.command()},
         }
         self.first = 1

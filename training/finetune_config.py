@@ -59,11 +59,23 @@ class FinetuneConfig:
     value_max_steps: int = option(600, "value: step limit of those episodes (past 300, so slow successes are labelled too)")
     value_updates: int = option(12_000, "value: minibatches of regression per iteration (learning rate annealed to 0)")
     dagger_episodes: int = option(512, "dagger: episodes per iteration, each chunk played by the student or the chooser")
+    dagger_teacher: str = option(
+        "",
+        "dagger: the chooser checkpoint stem that labels; --init is then the student, a plain flow of the chooser's flow "
+        "architecture (default: --init is the chooser and the student starts from its flow weights)",
+    )
     dagger_teacher_share: float = option(
-        0.25, "dagger: share of chunks the chooser plays after the first iteration (in which it plays all)"
+        0.25,
+        "dagger: share of chunks the chooser plays (all of them in the first iteration of a student that starts from "
+        "the chooser's flow)",
     )
     dagger_updates: int = option(4000, "dagger: minibatches of flow matching on all labels per iteration")
     dagger_lr: float = option(1e-4, "dagger: AdamW learning rate of the student flow")
+    dagger_lr_schedule: str = option(
+        "constant",
+        "dagger: constant, or cosine (each iteration's fit anneals the rate from dagger_lr to 0)",
+        choices=("constant", "cosine"),
+    )
     flow_num_steps: int = option(10, "Euler steps of the frozen flow (and of the dagger student)")
     train_seed_start: int = option(10_000_000, "first training episode seed (episodes use consecutive seeds)")
     eval_every: int = option(50, "evaluate (and checkpoint) every N iterations (0: only at the end)")
@@ -119,11 +131,19 @@ class FinetuneConfig:
         for name in ("explore", "dagger_teacher_share"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.dagger_lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"dagger_lr_schedule must be constant or cosine, got {self.dagger_lr_schedule!r}")
+        if self.dagger_teacher and self.algo != "dagger":
+            raise ValueError("dagger_teacher is a setting of --algo dagger")
         if not self.value_tau > 0:
             raise ValueError(f"value_tau must be > 0, got {self.value_tau}")
         self.outcome_dims_list()
         self.value_dims_list()
         self.stretches_list()
+
+    def chooser_stem(self) -> str:
+        """The checkpoint the chooser comes from: `dagger_teacher` when set, else `init`."""
+        return self.dagger_teacher or self.init
 
     def outcome_dims_list(self) -> list[int]:
         """`outcome_dims` as a list of widths."""

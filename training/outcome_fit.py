@@ -71,7 +71,9 @@ class FlowChooser:
         )
         self.policy.normalizer.set(base.normalizer)
         if unexpected or any(not k.startswith("outcome.") for k in missing):
-            raise ValueError(f"{cfg.init}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})")
+            raise ValueError(
+                f"{cfg.chooser_stem()}: weights do not carry over (missing {missing[:3]}, unexpected {unexpected[:3]})"
+            )
         # The flow stays frozen because only the outcome model is optimized: no loss reaches the flow (rollouts
         # run without grad), and leaving requires_grad alone keeps the card's parameter count whole.
         self.policy.eval()
@@ -86,7 +88,7 @@ def _chooser_architecture(arch: dict, cfg: FinetuneConfig) -> dict:
     """What the fit adds to the init's architecture: its outcome chooser as configured, for `--algo value` (which
     starts from an outcome chooser, kept as it is) a value model, for `--algo dagger` (the chooser teaches) nothing."""
     if cfg.algo in ("value", "dagger") and arch.get("outcome_dims") is None:
-        raise ValueError(f"{cfg.init}: --algo {cfg.algo} starts from an outcome chooser (a flow with outcome_dims)")
+        raise ValueError(f"{cfg.chooser_stem()}: --algo {cfg.algo} starts from an outcome chooser (a flow with outcome_dims)")
     if cfg.algo == "dagger":
         return {}  # the chooser teaches as it is
     if cfg.algo == "value":

@@ -13,6 +13,10 @@ train stage's `extra_from` lists collect stages whose episodes it learns from be
 OUT_DIR/STAGE-KEY, KEY a hash of its settings and its inputs: a second run is all cached, a
 changed stage reruns with the stages after it. A stopped stage (SIGTERM, SIGINT) resumes on the next
 run. The shipped card cites the recipe file and its sha256, the commit, and every stage's wall time.
+
+With --reuse-shipped, a stage whose output already ships (a card in MODELS_DIR lists the same key just before its
+ship stage) is restored from MODELS_DIR instead of run, and the stages only it needs are not run either: a fresh clone
+then runs only what the shipped policies do not hold. The card marks those stages `restored_from`.
 """
 
 from __future__ import annotations
@@ -20,9 +24,10 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import shutil
 import sys
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -69,13 +74,24 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--records-dir", default="records", help="where the ship stage writes the run's small evidence")
     parser.add_argument("--threads", type=int, default=None, help="torch threads of every stage (default: each stage's own)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument(
+        "--reuse-shipped",
+        action="store_true",
+        help="restore a stage whose output ships in MODELS_DIR (same key) instead of running it and what only it needs",
+    )
     args = parser.parse_args(argv)
     if not 0 < args.scale <= 1:
         parser.error(f"--scale must be in (0, 1], got {args.scale}")
     try:
         recipe = load_recipe(Path(args.recipe))
         options = RunOptions(
-            Path(args.out_dir), Path(args.models_dir), Path(args.records_dir), args.scale, args.threads, not args.no_progress
+            Path(args.out_dir),
+            Path(args.models_dir),
+            Path(args.records_dir),
+            args.scale,
+            args.threads,
+            not args.no_progress,
+            args.reuse_shipped,
         )
         results = run_recipe(recipe, options)
     except (RecipeError, ValueError, FileNotFoundError) as exc:
@@ -99,6 +115,7 @@ class RunOptions:
     scale: float = 1.0
     threads: int | None = None
     progress: bool = True
+    reuse_shipped: bool = False
 
 
 @dataclass
@@ -113,53 +130,124 @@ class StageResult:
     cached: bool
     score: dict[str, Any] | None
     exit_code: int = 0
+    restored_from: dict[str, str] | None = None
+    """the shipped policy (and its commit) whose card gave this stage's output, under --reuse-shipped"""
 
     def as_card(self) -> dict[str, Any]:
-        return {
+        card = {
             "name": self.stage,
             "run": self.run,
             "key": self.key,
             "wall_time_s": round(self.wall_time_s, 1),
             "score": self.score,
         }
+        return card | ({"restored_from": self.restored_from} if self.restored_from else {})
 
 
 def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
-    """Run (or take from the cache) every stage in order; stops after a stage that was stopped by a signal."""
+    """Run (or take from the cache, or from the shipped policies) every stage in order; stops after a stage that was
+    stopped by a signal."""
     from policies.checkpoint import git_commit
 
     commit = git_commit()
+    keys = stage_keys(recipe, options.scale)
+    shipped = ShippedStages.read(options.models_dir) if options.reuse_shipped else ShippedStages()
+    needed = _needed(recipe, keys, options, shipped)
     results: dict[str, StageResult] = {}
     for index, stage in enumerate(recipe.stages, 1):
-        settings = scaled(stage, options.scale)
-        source = results[stage.source] if stage.source else None
-        extra = [results[name] for name in stage.extra_sources]
-        shipped = {"policy": recipe.policy, "description": recipe.description, "default": recipe.default}
-        key = stage_key(stage, settings, source, options.scale, shipped if stage.run == "ship" else None, extra)
+        key = keys[stage.name]
         stage_dir = options.out_dir / f"{stage.name}-{key}"  # recipes that share a stage share its folder
         print(f"[{index}/{len(recipe.stages)}] {stage.name} ({stage.run}) -> {stage_dir}", file=sys.stderr, flush=True)
-        result = _cached(stage, key, stage_dir, options.models_dir / f"{recipe.policy}.json")
+        if stage.name not in needed:
+            print("  not needed: the stages after it are restored from the shipped policies", file=sys.stderr)
+            results[stage.name] = shipped.result(stage, key, stage_dir)
+            continue
+        result = _cached(stage, key, stage_dir, options.models_dir / f"{recipe.policy}.json") or shipped.restore(
+            stage, key, stage_dir
+        )
         if result is None:
             from training.recipe_stages import StageContext
 
+            before = list(results.values())
             result = _run_stage(
-                StageContext(
-                    recipe,
-                    stage,
-                    settings,
-                    source.dir if source else None,
-                    stage_dir,
-                    options,
-                    list(results.values()),
-                    commit,
-                    key,
-                    [r.dir for r in extra],
-                )
+                StageContext(recipe, stage, scaled(stage, options.scale), stage_dir, options, before, commit, key)
             )
         results[stage.name] = result
         if result.exit_code:
             break
     return list(results.values())
+
+
+def stage_keys(recipe: Recipe, scale: float) -> dict[str, str]:
+    """Every stage's cache key, in order (a key hashes its inputs' keys)."""
+    keys: dict[str, str] = {}
+    shipped = {"policy": recipe.policy, "description": recipe.description, "default": recipe.default}
+    for stage in recipe.stages:
+        keys[stage.name] = stage_key(stage, scaled(stage, scale), keys, scale, shipped if stage.run == "ship" else None)
+    return keys
+
+
+def _needed(recipe: Recipe, keys: dict[str, str], options: RunOptions, shipped: ShippedStages) -> set[str]:
+    """The stages to run or take from the cache: all of them, but under --reuse-shipped those whose every reader is
+    cached or restored (and whose own record the shipped cards keep)."""
+    names = [s.name for s in recipe.stages]
+    if not options.reuse_shipped:
+        return set(names)
+    needed = {names[-1]}
+    for stage in reversed(recipe.stages):
+        key = keys[stage.name]
+        if stage.name not in needed and key in shipped.records:
+            continue
+        needed.add(stage.name)
+        cached = _cached(stage, key, options.out_dir / f"{stage.name}-{key}", options.models_dir / f"{recipe.policy}.json")
+        if cached is None and key not in shipped.outputs:
+            needed.update(stage.inputs)
+    return needed
+
+
+@dataclass
+class ShippedStages:
+    """What the shipped cards say of the stages that made them: each stage's record by key, and which stage's output
+    each shipped policy is (the one before its ship stage)."""
+
+    records: dict[str, dict[str, Any]] = field(default_factory=dict)
+    outputs: dict[str, tuple[Path, dict[str, Any]]] = field(default_factory=dict)
+
+    @classmethod
+    def read(cls, models_dir: Path) -> ShippedStages:
+        shipped = cls()
+        for path in sorted(models_dir.glob("*.json")):
+            card = json.loads(path.read_text())
+            stages = card.get("stages") or []
+            if len(stages) < 2 or stages[-1].get("run") != "ship":
+                continue
+            origin = {"policy": path.stem, "git_commit": card.get("git_commit", "")}
+            for record in stages[:-1]:
+                shipped.records.setdefault(record["key"], record | {"restored_from": origin})
+            shipped.outputs[stages[-2]["key"]] = (path, origin)
+        return shipped
+
+    def result(self, stage: Stage, key: str, stage_dir: Path) -> StageResult:
+        """A stage that is not run: its record as the shipped card keeps it."""
+        record = self.records[key]
+        return StageResult(
+            stage.name, stage.run, key, stage_dir, record["wall_time_s"], True, record["score"], 0, record["restored_from"]
+        )
+
+    def restore(self, stage: Stage, key: str, stage_dir: Path) -> StageResult | None:
+        """The stage's output copied from the shipped policy that is it, marked done; None if none is."""
+        if key not in self.outputs:
+            return None
+        card_path, origin = self.outputs[key]
+        stage_dir.mkdir(parents=True, exist_ok=True)
+        for suffix in (".safetensors", ".json"):
+            shutil.copyfile(card_path.with_suffix(suffix), stage_dir / f"last{suffix}")
+        result = self.result(stage, key, stage_dir)
+        record = {"key": key, "stage": stage.name, "run": stage.run, "wall_time_s": result.wall_time_s}
+        record |= {"score": result.score, "git_commit": origin["git_commit"], "restored_from": origin}
+        (stage_dir / DONE_FILE).write_text(json.dumps(record, indent=2) + "\n")
+        print(f"  restored from {card_path}", file=sys.stderr)
+        return result
 
 
 def scaled(stage: Stage, scale: float) -> dict[str, Any]:
@@ -187,18 +275,15 @@ def _default(cls: type, name: str) -> Any:
 
 
 def stage_key(
-    stage: Stage,
-    settings: dict[str, Any],
-    source: StageResult | None,
-    scale: float,
-    shipped: dict[str, Any] | None = None,
-    extra: list[StageResult] = (),
+    stage: Stage, settings: dict[str, Any], keys: dict[str, str], scale: float, shipped: dict[str, Any] | None = None
 ) -> str:
-    """A hash of what the stage computes from: its kind, settings, acting settings and its inputs (a stage's key, the data,
-    collected episodes; for ship also what the recipe says of the policy it ships)."""
-    inputs: dict[str, Any] = {"from": source.key if source else None}
-    if extra:
-        inputs["extra"] = [r.key for r in extra]
+    """A hash of what the stage computes from: its kind, settings, acting settings and its inputs (the keys of the
+    stages it reads, the data; for ship also what the recipe says of the policy it ships)."""
+    inputs: dict[str, Any] = {"from": keys[stage.source] if stage.source else None}
+    if stage.extra_sources:
+        inputs["extra"] = [keys[name] for name in stage.extra_sources]
+    if stage.teacher:
+        inputs["teacher"] = keys[stage.teacher]
     if shipped is not None:
         inputs["shipped"] = shipped
     if stage.run == "train":
@@ -232,7 +317,8 @@ def _cached(stage: Stage, key: str, stage_dir: Path, shipped_card: Path) -> Stag
     if stage.run == "ship" and not _shipped_by(shipped_card, key):
         return None
     print(f"  cached ({record['wall_time_s']:.0f} s when it ran)", file=sys.stderr)
-    return StageResult(stage.name, stage.run, key, stage_dir, record["wall_time_s"], True, record.get("score"))
+    restored = record.get("restored_from")
+    return StageResult(stage.name, stage.run, key, stage_dir, record["wall_time_s"], True, record.get("score"), 0, restored)
 
 
 def _shipped_by(card: Path, key: str) -> bool:
@@ -275,7 +361,7 @@ def summary_table(results: list[StageResult]) -> str:
     """The end-of-run table: stage, kind, wall time, cached or run, score."""
     lines = ["| stage | run | wall time | cached | score |", "| --- | --- | --- | --- | --- |"]
     for r in results:
-        status = "stopped" if r.exit_code else ("cached" if r.cached else "ran")
+        status = "stopped" if r.exit_code else ("restored" if r.restored_from else "cached" if r.cached else "ran")
         lines.append(f"| {r.stage} | {r.run} | {r.wall_time_s:.0f} s | {status} | {format_score(r.score)} |")
     total = sum(r.wall_time_s for r in results)
     lines.append(f"| total | | {total:.0f} s | | |")

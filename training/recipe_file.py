@@ -20,6 +20,7 @@ RUNNER_OWNED = (
     "overwrite",
     "progress",
     "init",
+    "dagger_teacher",
     "extra_data",
     "run",
     "models_dir",
@@ -40,6 +41,13 @@ class Stage:
     acting: dict[str, Any] = field(default_factory=dict)
     extra_sources: tuple[str, ...] = ()
     """collect stages whose episodes a train stage learns from beside the demonstrations"""
+    teacher: str | None = None
+    """the stage whose chooser labels a dagger stage's student (the student is then `source`'s plain flow)"""
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """Every earlier stage whose output this one reads."""
+        return tuple(name for name in (self.source, *self.extra_sources, self.teacher) if name)
 
 
 @dataclass
@@ -108,6 +116,11 @@ def _parse_stage(path: Path, index: int, table: dict[str, Any], earlier: list[st
     extra = table.pop("extra_from", [])
     if extra and (run != "train" or not isinstance(extra, list) or not set(extra) <= set(earlier)):
         raise RecipeError(f"{where} ({name}): `extra_from` is a train stage's list of earlier collect stages, got {extra!r}")
+    teacher = table.pop("teacher", None)
+    if teacher is not None and (run != "finetune" or table.get("algo") != "dagger" or teacher not in earlier):
+        raise RecipeError(
+            f"{where} ({name}): `teacher` names the earlier stage whose chooser labels a dagger stage, got {teacher!r}"
+        )
     acting = table.pop("acting", {})
     if not isinstance(acting, dict) or set(acting) - set(ACTING_KEYS):
         raise RecipeError(f"{where} ({name}): `acting` takes only {ACTING_KEYS}")
@@ -118,7 +131,7 @@ def _parse_stage(path: Path, index: int, table: dict[str, Any], earlier: list[st
     unknown = sorted(set(table) - allowed)
     if unknown:
         raise RecipeError(f'{where} ({name}): unknown settings for `run = "{run}"`: {unknown}')
-    return Stage(name, run, table, source, acting, tuple(extra))
+    return Stage(name, run, table, source, acting, tuple(extra), teacher)
 
 
 def _settings_fields(run: str) -> set[str]:

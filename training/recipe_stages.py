@@ -12,7 +12,7 @@ import json
 import re
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,14 +30,25 @@ class StageContext:
     recipe: Any
     stage: Any
     settings: dict[str, Any]
-    source_dir: Path | None
     stage_dir: Path
     options: Any
     before: list[Any]
+    """the results of the stages before this one, in order"""
     commit: str
     key: str
-    extra_dirs: list[Path] = field(default_factory=list)
-    """the folders of the collect stages a train stage learns from"""
+
+    def input_dir(self, name: str | None) -> Path | None:
+        """The folder of the earlier stage `name` (None for None)."""
+        return next(r.dir for r in self.before if r.stage == name) if name else None
+
+    @property
+    def source_dir(self) -> Path | None:
+        return self.input_dir(self.stage.source)
+
+    @property
+    def extra_dirs(self) -> list[Path]:
+        """the folders of the collect stages a train stage learns from"""
+        return [self.input_dir(name) for name in self.stage.extra_sources]
 
     def run_options(self) -> dict[str, Any]:
         """The settings the runner owns: folder, resume or start afresh, threads, progress bar."""
@@ -85,12 +96,16 @@ def train(ctx: StageContext) -> StageOutcome:
 
 
 def finetune(ctx: StageContext) -> StageOutcome:
-    """Beyond imitation (`training.finetune`) from the source stage's final checkpoint."""
+    """Beyond imitation (`training.finetune`) from the source stage's final checkpoint (a dagger stage's student; its
+    `teacher` stage's checkpoint labels)."""
     from training.finetune import finetune as run_finetune
     from training.finetune_config import FinetuneConfig
 
+    inputs = {"init": str(ctx.source_dir / "last")}
+    if ctx.stage.teacher:
+        inputs["dagger_teacher"] = str(ctx.input_dir(ctx.stage.teacher) / "last")
     if not _finished(ctx.stage_dir):
-        run = run_finetune(ctx.config(FinetuneConfig, init=str(ctx.source_dir / "last")))
+        run = run_finetune(ctx.config(FinetuneConfig, **inputs))
         if run.stop_requested:
             return StageOutcome(None, None, run.exit_code())
     return _finish(ctx)
