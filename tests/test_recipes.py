@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -61,6 +62,15 @@ def test_the_flow_recipe_shares_the_choosers_stages() -> None:
             "policy = 'x'\n[[stage]]\nname = 'a'\nrun = 'train'\n[[stage]]\nname = 'b'\nrun = 'collect'\nmodel = 'm'\n",
             "set by the recipe runner",
         ),
+        (
+            "policy = 'x'\n[[stage]]\nname = 'a'\nrun = 'train'\n[[stage]]\nname = 'b'\nrun = 'finetune'\nteacher = 'a'\n",
+            "`teacher` names the earlier stage whose chooser labels a dagger stage",
+        ),
+        (
+            "policy = 'x'\n[[stage]]\nname = 'a'\nrun = 'train'\n[[stage]]\nname = 'b'\nrun = 'finetune'\nalgo = 'dagger'\n"
+            "teacher = 'c'\n",
+            "`teacher` names the earlier stage",
+        ),
         ("policy = [\n", "not valid TOML"),
     ],
 )
@@ -114,6 +124,7 @@ def smoke(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("recipes")
     tables = {path.stem: _recipe(path, out, "--threads", "1") for path in RECIPES}
     (out / "tables.json").write_text(json.dumps(tables))
+    shutil.copytree(out / "models", out / "shipped")  # as the recipes shipped them, whatever a test ships over them later
     return out
 
 
@@ -161,6 +172,33 @@ def test_a_rerun_is_cached_and_a_changed_stage_reruns_with_its_successors(smoke:
     assert changed.read_text() != text
     statuses = _statuses(_recipe(changed, smoke))
     assert statuses == {"imitation": "cached", "outcome": "cached", "outcome-stretch": "ran", "value": "ran", "ship": "ran"}
+
+
+@pytest.mark.slow
+def test_reuse_shipped_restores_what_ships_and_runs_only_the_rest(smoke: Path, tmp_path: Path) -> None:
+    """--reuse-shipped on a fresh out-dir: value comes from flow-chooser's card, the last dagger stage from flow's, the
+    stages only they read do not run, and the new card says which policy and commit ran each."""
+    shutil.copytree(smoke / "shipped", tmp_path / "models")
+    shipped = json.loads((tmp_path / "models" / "flow.json").read_text())
+    statuses = _statuses(_recipe(REPO / "recipes" / "flow.toml", tmp_path, "--reuse-shipped"))
+    assert statuses == {s.name: "restored" for s in load_recipe(REPO / "recipes" / "flow.toml").stages[:-1]} | {"ship": "ran"}
+    assert not (tmp_path / "runs" / f"imitation-{shipped['stages'][0]['key']}").exists()
+    card = json.loads((tmp_path / "models" / "flow.json").read_text())
+    origins = {s["name"]: s.get("restored_from", {}).get("policy") for s in card["stages"]}
+    assert origins["value"] == "flow-chooser" and origins["dagger-own-states"] == "flow" and origins["ship"] is None
+    assert [(s["key"], s["wall_time_s"]) for s in card["stages"][:-1]] == [
+        (s["key"], s["wall_time_s"]) for s in shipped["stages"][:-1]
+    ]
+    assert (tmp_path / "models" / "flow.safetensors").read_bytes() == (smoke / "shipped" / "flow.safetensors").read_bytes()
+    # the last stage changed: the dagger stage reruns on the value stage restored from flow-chooser, whose ship stage's
+    # 256 candidates are undone to the 64 the recipe's stages set
+    changed = tmp_path / "flow.toml"
+    changed.write_text((REPO / "recipes" / "flow.toml").read_text().replace("dagger_updates = 20_000", "dagger_updates = 19_000"))
+    statuses = _statuses(_recipe(changed, tmp_path, "--reuse-shipped"))
+    assert [statuses.pop(name) for name in ("dagger", "dagger-own-states", "ship")] == ["ran"] * 3
+    assert set(statuses.values()) == {"restored"}
+    restored = json.loads(next((tmp_path / "runs").glob("value-*/last.json")).read_text())
+    assert restored["architecture"]["outcome_candidates"] == 64
 
 
 def test_every_shipped_card_cites_its_recipe_and_names_no_missing_path() -> None:

@@ -163,7 +163,7 @@ def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
             results[stage.name] = shipped.result(stage, key, stage_dir)
             continue
         result = _cached(stage, key, stage_dir, options.models_dir / f"{recipe.policy}.json") or shipped.restore(
-            stage, key, stage_dir
+            recipe, stage, key, stage_dir
         )
         if result is None:
             from training.recipe_stages import StageContext
@@ -199,8 +199,8 @@ def _needed(recipe: Recipe, keys: dict[str, str], options: RunOptions, shipped: 
         if stage.name not in needed and key in shipped.records:
             continue
         needed.add(stage.name)
-        cached = _cached(stage, key, options.out_dir / f"{stage.name}-{key}", options.models_dir / f"{recipe.policy}.json")
-        if cached is None and key not in shipped.outputs:
+        done = _done_record(stage, key, options.out_dir / f"{stage.name}-{key}", options.models_dir / f"{recipe.policy}.json")
+        if done is None and shipped.acting(recipe, stage, key) is None:
             needed.update(stage.inputs)
     return needed
 
@@ -208,10 +208,10 @@ def _needed(recipe: Recipe, keys: dict[str, str], options: RunOptions, shipped: 
 @dataclass
 class ShippedStages:
     """What the shipped cards say of the stages that made them: each stage's record by key, and which stage's output
-    each shipped policy is (the one before its ship stage)."""
+    each shipped policy is (the one before its ship stage) with the `acting` its ship stage wrote over it."""
 
     records: dict[str, dict[str, Any]] = field(default_factory=dict)
-    outputs: dict[str, tuple[Path, dict[str, Any]]] = field(default_factory=dict)
+    outputs: dict[str, tuple[Path, dict[str, Any], dict[str, Any]]] = field(default_factory=dict)
 
     @classmethod
     def read(cls, models_dir: Path) -> ShippedStages:
@@ -224,8 +224,23 @@ class ShippedStages:
             origin = {"policy": path.stem, "git_commit": card.get("git_commit", "")}
             for record in stages[:-1]:
                 shipped.records.setdefault(record["key"], record | {"restored_from": origin})
-            shipped.outputs[stages[-2]["key"]] = (path, origin)
+            ship_acting = _ship_acting(card)
+            if ship_acting is not None:
+                shipped.outputs[stages[-2]["key"]] = (path, origin, ship_acting)
         return shipped
+
+    def acting(self, recipe: Recipe, stage: Stage, key: str) -> dict[str, Any] | None:
+        """The acting settings that make the shipped policy the stage's output again (the ship stage's, undone by the
+        latest `acting` of the stage and those it comes from); None if no shipped policy is its output."""
+        if key not in self.outputs:
+            return None
+        by_name = {s.name: s for s in recipe.stages}
+        chain, name = {}, stage.name
+        while name:  # the stage, then its source, ...: the first to set a key set it last
+            chain = by_name[name].acting | chain
+            name = by_name[name].source
+        changed = self.outputs[key][2]
+        return {k: chain[k] for k in changed} if set(changed) <= set(chain) else None
 
     def result(self, stage: Stage, key: str, stage_dir: Path) -> StageResult:
         """A stage that is not run: its record as the shipped card keeps it."""
@@ -234,20 +249,44 @@ class ShippedStages:
             stage.name, stage.run, key, stage_dir, record["wall_time_s"], True, record["score"], 0, record["restored_from"]
         )
 
-    def restore(self, stage: Stage, key: str, stage_dir: Path) -> StageResult | None:
+    def restore(self, recipe: Recipe, stage: Stage, key: str, stage_dir: Path) -> StageResult | None:
         """The stage's output copied from the shipped policy that is it, marked done; None if none is."""
-        if key not in self.outputs:
+        acting = self.acting(recipe, stage, key)
+        if acting is None:
             return None
-        card_path, origin = self.outputs[key]
+        from training.recipe_stages import set_acting
+
+        card_path, origin, _ = self.outputs[key]
         stage_dir.mkdir(parents=True, exist_ok=True)
         for suffix in (".safetensors", ".json"):
             shutil.copyfile(card_path.with_suffix(suffix), stage_dir / f"last{suffix}")
+        set_acting(stage_dir / "last", acting)
         result = self.result(stage, key, stage_dir)
         record = {"key": key, "stage": stage.name, "run": stage.run, "wall_time_s": result.wall_time_s}
         record |= {"score": result.score, "git_commit": origin["git_commit"], "restored_from": origin}
         (stage_dir / DONE_FILE).write_text(json.dumps(record, indent=2) + "\n")
-        print(f"  restored from {card_path}", file=sys.stderr)
+        print(f"  restored from {card_path}" + (f", acting {acting}" if acting else ""), file=sys.stderr)
         return result
+
+
+def _ship_acting(card: dict[str, Any]) -> dict[str, Any] | None:
+    """The `acting` of the ship stage that wrote the card, from its recipe as it was (at the card's commit, or as the
+    file is now: whichever has the sha256 the card cites); None if neither has."""
+    import subprocess
+    import tomllib
+
+    recipe = card.get("recipe") or {}
+    if "file" not in recipe:
+        return None
+    texts = [Path(recipe["file"]).read_bytes()] if Path(recipe["file"]).is_file() else []
+    commit = str(card.get("git_commit", "")).removesuffix("-dirty")
+    try:
+        shown = subprocess.run(["git", "show", f"{commit}:{recipe['file']}"], capture_output=True, timeout=30)
+        texts.append(shown.stdout if shown.returncode == 0 else b"")
+    except (OSError, subprocess.SubprocessError):
+        pass
+    text = next((t for t in texts if hashlib.sha256(t).hexdigest() == recipe.get("sha256")), None)
+    return None if text is None else tomllib.loads(text.decode())["stage"][-1].get("acting", {})
 
 
 def scaled(stage: Stage, scale: float) -> dict[str, Any]:
@@ -308,6 +347,15 @@ def tree_sha256(path: Path) -> str:
 
 def _cached(stage: Stage, key: str, stage_dir: Path, shipped_card: Path) -> StageResult | None:
     """The stage's result if its folder holds a finished run of the same key (ship: and the shipped card is its output)."""
+    record = _done_record(stage, key, stage_dir, shipped_card)
+    if record is None:
+        return None
+    print(f"  cached ({record['wall_time_s']:.0f} s when it ran)", file=sys.stderr)
+    restored = record.get("restored_from")
+    return StageResult(stage.name, stage.run, key, stage_dir, record["wall_time_s"], True, record.get("score"), 0, restored)
+
+
+def _done_record(stage: Stage, key: str, stage_dir: Path, shipped_card: Path) -> dict[str, Any] | None:
     done = stage_dir / DONE_FILE
     if not done.is_file():
         return None
@@ -316,9 +364,7 @@ def _cached(stage: Stage, key: str, stage_dir: Path, shipped_card: Path) -> Stag
         return None
     if stage.run == "ship" and not _shipped_by(shipped_card, key):
         return None
-    print(f"  cached ({record['wall_time_s']:.0f} s when it ran)", file=sys.stderr)
-    restored = record.get("restored_from")
-    return StageResult(stage.name, stage.run, key, stage_dir, record["wall_time_s"], True, record.get("score"), 0, restored)
+    return record
 
 
 def _shipped_by(card: Path, key: str) -> bool:

@@ -18,7 +18,7 @@ from typing import Any
 
 from policies.checkpoint import load_card, set_noise_scale, set_outcome_candidates, update_card
 
-__all__ = ["StageContext", "StageOutcome", "collect", "finetune", "ship", "train"]
+__all__ = ["StageContext", "StageOutcome", "collect", "finetune", "set_acting", "ship", "train"]
 
 RECIPE_COMMAND = "python -m training.recipe"
 
@@ -141,7 +141,7 @@ def ship(ctx: StageContext) -> StageOutcome:
     for name in ("last.safetensors", "last.json", "learning_curve.png", "log.jsonl"):
         if (ctx.source_dir / name).is_file():
             shutil.copyfile(ctx.source_dir / name, copy / name)
-    _set_acting(copy / "last", ctx.stage.acting)
+    set_acting(copy / "last", ctx.stage.acting)
     reports = ship_run(
         ShipConfig(
             copy,
@@ -188,12 +188,13 @@ def _finish(ctx: StageContext) -> StageOutcome:
     stem = ctx.stage_dir / "last"
     for checkpoint in ("last", "best"):
         if (ctx.stage_dir / f"{checkpoint}.json").is_file():
-            _set_acting(ctx.stage_dir / checkpoint, ctx.stage.acting)
+            set_acting(ctx.stage_dir / checkpoint, ctx.stage.acting)
     card = load_card(stem)
     return StageOutcome(_score(card.get("evaluation")), float(card["wall_time_s"]))
 
 
-def _set_acting(stem: Path, acting: dict[str, Any]) -> None:
+def set_acting(stem: Path, acting: dict[str, Any]) -> None:
+    """Write a stage's `acting` settings (noise_scale, outcome_candidates) on a checkpoint."""
     if "noise_scale" in acting:
         set_noise_scale(stem, acting["noise_scale"])
     if "outcome_candidates" in acting:
