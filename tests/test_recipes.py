@@ -35,7 +35,7 @@ def test_the_flow_recipe_shares_the_choosers_stages() -> None:
     """flow.toml's student learns from the chooser of flow-chooser.toml's stages: the same stages, so one run serves both."""
     flow, chooser = (load_recipe(REPO / "recipes" / f"{name}.toml") for name in ("flow", "flow-chooser"))
     shared = [s.name for s in chooser.stages if s.run != "ship"]
-    assert [s.name for s in flow.stages] == [*shared, "dagger", "dagger-own-states", "ship"]
+    assert [s.name for s in flow.stages] == [*shared, "dagger", "dagger-own-states", "dagger-more", "ship"]
     assert flow.stages[: len(shared)] == chooser.stages[: len(shared)]
 
 
@@ -185,7 +185,7 @@ def test_reuse_shipped_restores_what_ships_and_runs_only_the_rest(smoke: Path, t
     assert not (tmp_path / "runs" / f"imitation-{shipped['stages'][0]['key']}").exists()
     card = json.loads((tmp_path / "models" / "flow.json").read_text())
     origins = {s["name"]: s.get("restored_from", {}).get("policy") for s in card["stages"]}
-    assert origins["value"] == "flow-chooser" and origins["dagger-own-states"] == "flow" and origins["ship"] is None
+    assert origins["value"] == "flow-chooser" and origins["dagger-more"] == "flow" and origins["ship"] is None
     assert [(s["key"], s["wall_time_s"]) for s in card["stages"][:-1]] == [
         (s["key"], s["wall_time_s"]) for s in shipped["stages"][:-1]
     ]
@@ -195,7 +195,7 @@ def test_reuse_shipped_restores_what_ships_and_runs_only_the_rest(smoke: Path, t
     changed = tmp_path / "flow.toml"
     changed.write_text((REPO / "recipes" / "flow.toml").read_text().replace("dagger_updates = 20_000", "dagger_updates = 19_000"))
     statuses = _statuses(_recipe(changed, tmp_path, "--reuse-shipped"))
-    assert [statuses.pop(name) for name in ("dagger", "dagger-own-states", "ship")] == ["ran"] * 3
+    assert [statuses.pop(name) for name in ("dagger", "dagger-own-states", "dagger-more", "ship")] == ["ran"] * 4
     assert set(statuses.values()) == {"restored"}
     restored = json.loads(next((tmp_path / "runs").glob("value-*/last.json")).read_text())
     assert restored["architecture"]["outcome_candidates"] == 64
