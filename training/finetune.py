@@ -78,10 +78,11 @@ class _FineTuning:
         self.cfg = cfg
         torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
-        base, base_card = load_checkpoint(cfg.chooser_stem())
+        stem = cfg.chooser_stem()
+        base, base_card = load_checkpoint(stem)
         if base_card["kind"] != "flow":
-            raise ValueError(f"{cfg.chooser_stem()} is a {base_card['kind']} checkpoint; fine-tuning needs a flow")
-        require_state_only(base_card, cfg.chooser_stem(), "fine-tuning")
+            raise ValueError(f"{stem} is a {base_card['kind']} checkpoint; fine-tuning needs a flow")
+        require_state_only(base_card, stem, "fine-tuning")
         self.agent = FlowChooser(base, base_card, cfg)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         learner = {"outcome": OutcomeFit, "value": ValueFit, "dagger": DaggerFit}[cfg.algo]

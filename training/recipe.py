@@ -119,6 +119,10 @@ class RunOptions:
     progress: bool = True
     reuse_shipped: bool = False
 
+    def stage_dir(self, name: str, key: str) -> Path:
+        """A stage's output folder: recipes that share a stage (same key) share it."""
+        return self.out_dir / f"{name}-{key}"
+
 
 @dataclass
 class StageResult:
@@ -159,7 +163,7 @@ def run_recipe(recipe: Recipe, options: RunOptions) -> list[StageResult]:
     results: dict[str, StageResult] = {}
     for index, stage in enumerate(recipe.stages, 1):
         key = keys[stage.name]
-        stage_dir = options.out_dir / f"{stage.name}-{key}"  # recipes that share a stage share its folder
+        stage_dir = options.stage_dir(stage.name, key)
         print(f"[{index}/{len(recipe.stages)}] {stage.name} ({stage.run}) -> {stage_dir}", file=sys.stderr, flush=True)
         if stage.name not in needed:
             print("  not needed: the stages after it are restored from the shipped policies", file=sys.stderr)
@@ -202,7 +206,7 @@ def _needed(recipe: Recipe, keys: dict[str, str], options: RunOptions, shipped: 
         if stage.name not in needed and key in shipped.records:
             continue
         needed.add(stage.name)
-        done = _done_record(stage, key, options.out_dir / f"{stage.name}-{key}", options.models_dir / f"{recipe.policy}.json")
+        done = _done_record(stage, key, options.stage_dir(stage.name, key), options.models_dir / f"{recipe.policy}.json")
         if done is None and shipped.acting(recipe, stage, key) is None:
             needed.update(stage.inputs)
     return needed

@@ -93,12 +93,19 @@ def _ship_acting(card: dict[str, Any]) -> dict[str, Any] | None:
     recipe = card.get("recipe") or {}
     if "file" not in recipe:
         return None
-    texts = [Path(recipe["file"]).read_bytes()] if Path(recipe["file"]).is_file() else []
-    commit = str(card.get("git_commit", "")).removesuffix("-dirty")
+    path = Path(recipe["file"])
+    text = path.read_bytes() if path.is_file() else b""
+    if hashlib.sha256(text).hexdigest() != recipe.get("sha256"):  # changed since: ask git for it as it was
+        text = _shown(card.get("git_commit", ""), recipe["file"])
+    if hashlib.sha256(text).hexdigest() != recipe.get("sha256"):
+        return None
+    return tomllib.loads(text.decode())["stage"][-1].get("acting", {})
+
+
+def _shown(commit: str, file: str) -> bytes:
+    """`git show COMMIT:FILE` (a card's '-dirty' commit taken as its clean one); b"" if git cannot show it."""
     try:
-        shown = subprocess.run(["git", "show", f"{commit}:{recipe['file']}"], capture_output=True, timeout=30)
-        texts.append(shown.stdout if shown.returncode == 0 else b"")
+        shown = subprocess.run(["git", "show", f"{commit.removesuffix('-dirty')}:{file}"], capture_output=True, timeout=30)
     except (OSError, subprocess.SubprocessError):
-        pass
-    text = next((t for t in texts if hashlib.sha256(t).hexdigest() == recipe.get("sha256")), None)
-    return None if text is None else tomllib.loads(text.decode())["stage"][-1].get("acting", {})
+        return b""
+    return shown.stdout if shown.returncode == 0 else b""
