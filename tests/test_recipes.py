@@ -35,8 +35,8 @@ def test_the_flow_recipe_shares_the_choosers_stages() -> None:
     """flow.toml's student learns from the chooser of flow-chooser.toml's stages: the same stages, so one run serves both."""
     flow, chooser = (load_recipe(REPO / "recipes" / f"{name}.toml") for name in ("flow", "flow-chooser"))
     shared = [s.name for s in chooser.stages if s.run != "ship"]
-    assert [s.name for s in flow.stages] == [*shared, "dagger", "dagger-own-states", "dagger-more", "ship"]
     assert flow.stages[: len(shared)] == chooser.stages[: len(shared)]
+    assert [s.settings.get("algo") for s in flow.stages[len(shared) : -1]] == ["dagger"] * (len(flow.stages) - len(shared) - 1)
 
 
 @pytest.mark.parametrize(
