@@ -81,9 +81,9 @@ def stage_tables(cards: list) -> str:
         ]
         for stage in card.data.get("stages", []):
             wall = f"{stage['wall_time_s']:.0f} s"
-            if "restored_from" in stage:  # run earlier, for the shipped policy it names: --reuse-shipped
+            if "restored_from" in stage:  # not run here: taken from a shipped card (--reuse-shipped)
                 origin = stage["restored_from"]
-                wall += f" (run for {origin['policy']}, commit {origin['git_commit'][:10]})"
+                wall += f" (from {origin['policy']}'s card at commit {origin['git_commit'][:10]})"
             lines.append(f"| {stage['name']} | {stage['run']} | {wall} | {format_score(stage.get('score'))} |")
         lines.append(f"| total | | {card.data.get('stages_wall_time_s', 0):.0f} s | |")
         blocks.append("\n".join(lines))
