@@ -223,3 +223,15 @@ def test_every_shipped_card_cites_its_recipe_and_names_no_missing_path() -> None
     # one command, under 3 hours on 2 cores: 6,092 s on one machine, 8,519 s on a slower one, 10,042 s for the shipped
     # run (its value stage on 1 thread beside other work; docs/findings.md)
     assert json.loads((REPO / "models" / "flow-chooser.json").read_text())["stages_wall_time_s"] <= 3 * 3600
+
+
+def test_a_stage_carried_over_again_keeps_the_card_that_ran_it(tmp_path: Path) -> None:
+    """--reuse-shipped on a card whose stage was itself restored names the earlier card, not the one holding it now."""
+    from training.recipe_reuse import ShippedStages
+
+    ran = {"policy": "flow-chooser", "git_commit": "c0"}
+    stages = [{"key": "k1", "restored_from": ran}, {"key": "k2"}, {"key": "k3", "run": "ship"}]
+    (tmp_path / "flow.json").write_text(json.dumps({"git_commit": "c1", "stages": stages}))
+    records = ShippedStages.read(tmp_path).records
+    assert records["k1"]["restored_from"] == ran
+    assert records["k2"]["restored_from"] == {"policy": "flow", "git_commit": "c1"}

@@ -40,8 +40,8 @@ class ShippedStages:
             if len(stages) < 2 or stages[-1].get("run") != "ship":
                 continue
             origin = {"policy": path.stem, "git_commit": card.get("git_commit", "")}
-            for record in stages[:-1]:
-                shipped.records.setdefault(record["key"], record | {"restored_from": origin})
+            for record in stages[:-1]:  # a stage the card itself restored keeps the card that ran it
+                shipped.records.setdefault(record["key"], {"restored_from": origin} | record)
             ship_acting = _ship_acting(card)
             if ship_acting is not None:
                 shipped.outputs[stages[-2]["key"]] = (path, origin, ship_acting)
@@ -81,7 +81,7 @@ class ShippedStages:
         set_acting(stage_dir / "last", acting)
         result = self.result(stage, key, stage_dir)
         record = {"key": key, "stage": stage.name, "run": stage.run, "wall_time_s": result.wall_time_s}
-        record |= {"score": result.score, "git_commit": origin["git_commit"], "restored_from": origin}
+        record |= {"score": result.score, "git_commit": origin["git_commit"], "restored_from": result.restored_from}
         (stage_dir / DONE_FILE).write_text(json.dumps(record, indent=2) + "\n")
         print(f"  restored from {card_path}" + (f", acting {acting}" if acting else ""), file=sys.stderr)
         return result
