@@ -321,3 +321,38 @@ def test_a_dagger_fit_teaches_a_plain_flow_the_choosers_picks(tmp_path: Path) ->
     assert load_card(finetune(more).dir / "last")["teacher"] == str(chooser)
     with pytest.raises(ValueError, match="a plain flow of the architecture"):
         DaggerFit(agent, dataclasses.replace(more, init=str(chooser)), torch.Generator())
+
+
+def test_a_dagger_run_keeps_its_labels_and_a_later_run_starts_its_pool_with_them(tmp_path: Path) -> None:
+    """A finished dagger run writes labels.safetensors (every label of its pool); `dagger_labels` puts them in a later
+    run's pool before its first round; a file that is not such labels, or was labelled under another normalization,
+    is refused with its name."""
+    from training.dagger_fit import DaggerFit
+    from training.outcome_fit import FlowChooser
+
+    chooser = finetune(_tiny(tmp_path, iterations=1, eval_every=0)).dir / "last"
+    settings = dict(name="d", algo="dagger", init=str(chooser), iterations=1, eval_every=0, num_envs=3)
+    cfg = _tiny(tmp_path, **settings, dagger_episodes=3, dagger_updates=2)
+    run = finetune(cfg).dir
+    labelled = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if '"train"' in line][-1]["labels"]
+    teacher, card = load_checkpoint(chooser)
+    later = dataclasses.replace(cfg, name="d2", dagger_labels=str(run / "labels.safetensors"))
+    fit = DaggerFit(FlowChooser(teacher, card, later), later, torch.Generator().manual_seed(0))
+    assert fit.replay.size == labelled > 0
+    with pytest.raises(ValueError, match="is a setting of --algo dagger"):
+        _tiny(tmp_path, dagger_labels=str(run / "labels.safetensors"))
+    (tmp_path / "junk.safetensors").write_bytes(b"not labels")
+    with pytest.raises(ValueError, match="junk.safetensors: not a labels file"):
+        DaggerFit(
+            FlowChooser(teacher, card, later),
+            dataclasses.replace(later, dagger_labels=str(tmp_path / "junk.safetensors")),
+            torch.Generator(),
+        )
+    fit.trained.normalization = {**fit.trained.normalization, "other": 1}
+    fit.save_labels(tmp_path / "other.safetensors")
+    with pytest.raises(ValueError, match="another normalization"):
+        DaggerFit(
+            FlowChooser(teacher, card, later),
+            dataclasses.replace(later, dagger_labels=str(tmp_path / "other.safetensors")),
+            torch.Generator(),
+        )

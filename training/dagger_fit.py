@@ -12,11 +12,15 @@ student, a plain flow-matching sampler whose noise changes its actions.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
 
 from policies.base import ActingPolicy
 from policies.checkpoint import load_checkpoint
@@ -26,7 +30,7 @@ from training.finetune_config import FinetuneConfig
 from training.outcome_fit import FlowChooser, Resumable
 from training.replay import ReplayBuffer
 
-__all__ = ["DaggerFit", "Student"]
+__all__ = ["DaggerFit", "Student", "read_labels"]
 
 CHOOSER_KEYS = ("outcome_dims", "outcome_candidates", "outcome_stretches", "value_dims")
 """the architecture keys of a flow's chooser: the student's architecture is the chooser's without them"""
@@ -58,6 +62,9 @@ class DaggerFit(Resumable):
         )
         self.rng = np.random.default_rng(cfg.seed)
         self.episodes = 0  # played so far: the next iteration starts at train_seed_start + episodes
+        if cfg.dagger_labels:
+            widths = {k: v.shape[1] for k, v in self.replay.data.items()}
+            self.replay.add(**read_labels(cfg.dagger_labels, policy.normalizer.to_dict(), widths))
 
     def parts(self) -> tuple[dict, dict, dict]:
         """(modules, optimizers, replays) by name: the student, its optimizer, the labels (chunks as `x0`)."""
@@ -84,6 +91,11 @@ class DaggerFit(Resumable):
         finished_max.extend(e.max_reward for e in summary.episodes)
         finished_success.extend(e.success for e in summary.episodes)
         return {"episodes": self.episodes, "flow_loss": self._fit(), "labels": self.replay.size, "teacher_share": share}
+
+    def save_labels(self, path: str | Path) -> None:
+        """Write the pool (states and the chooser's normalized picks) for `dagger_labels` of a later run."""
+        data = {k: v[: self.replay.size].contiguous() for k, v in self.replay.data.items()}
+        save_file(data, str(path), metadata={"normalization": json.dumps(self.trained.normalization, sort_keys=True)})
 
     def _labelling_act(self, share: float):
         """The rollout's act: every row labelled with the chooser's pick, played by the chooser in a `share` of rows."""
@@ -138,3 +150,21 @@ def _student_weights(chooser: torch.nn.Module, cfg: FinetuneConfig) -> dict[str,
     ):
         raise ValueError(f"{cfg.init}: a dagger student must be a plain flow of the architecture of the chooser's flow")
     return weights
+
+
+def read_labels(path: str, normalization: dict, widths: dict[str, int]) -> dict[str, torch.Tensor]:
+    """The labels `DaggerFit.save_labels` wrote, checked against the chooser's normalization (its picks are normalized)."""
+    try:
+        with safe_open(path, framework="pt") as f:
+            labels = {k: f.get_tensor(k) for k in f.keys()}
+            saved = json.loads((f.metadata() or {}).get("normalization", "null"))
+    except (OSError, SafetensorError, ValueError) as e:
+        raise ValueError(f"{path}: not a labels file of a dagger run ({e})") from None
+    shapes = {k: list(v.shape) for k, v in labels.items()}
+    if set(labels) != set(widths) or any(
+        v.ndim != 2 or v.shape[1] != widths[k] or len(v) != len(labels["state"]) for k, v in labels.items()
+    ):
+        raise ValueError(f"{path}: a labels file holds state and x0 rows of widths {widths}, as many of each, got {shapes}")
+    if saved != json.loads(json.dumps(normalization, sort_keys=True)):
+        raise ValueError(f"{path}: labelled under another normalization than this chooser's")
+    return labels

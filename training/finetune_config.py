@@ -69,6 +69,11 @@ class FinetuneConfig:
         "dagger: share of chunks the chooser plays (all of them in the first iteration of a student that starts from "
         "the chooser's flow)",
     )
+    dagger_labels: str = option(
+        "",
+        "dagger: labels.safetensors of an earlier dagger run of the same chooser, its labels put in the pool before the "
+        "first iteration (every dagger run writes its own beside its checkpoint)",
+    )
     dagger_updates: int = option(4000, "dagger: minibatches of flow matching on all labels per iteration")
     dagger_lr: float = option(1e-4, "dagger: AdamW learning rate of the student flow")
     dagger_lr_schedule: str = option(
@@ -133,8 +138,9 @@ class FinetuneConfig:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.dagger_lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"dagger_lr_schedule must be constant or cosine, got {self.dagger_lr_schedule!r}")
-        if self.dagger_teacher and self.algo != "dagger":
-            raise ValueError("dagger_teacher is a setting of --algo dagger")
+        for name in ("dagger_teacher", "dagger_labels"):
+            if getattr(self, name) and self.algo != "dagger":
+                raise ValueError(f"{name} is a setting of --algo dagger")
         if not self.value_tau > 0:
             raise ValueError(f"value_tau must be > 0, got {self.value_tau}")
         self.outcome_dims_list()
