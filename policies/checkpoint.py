@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import save_file
 
 from policies.base import ActingPolicy
 from policies.card import CardError, card_stem, read_card, validate_card
@@ -70,12 +70,7 @@ def save_checkpoint(stem: str | Path, policy: torch.nn.Module, normalization: An
         card["git_commit"] = git_commit()
     text = json.dumps(card, indent=2, allow_nan=False) + "\n"  # fails early on non-JSON config values
     stem.parent.mkdir(parents=True, exist_ok=True)
-    # contiguous copies: safetensors refuses shared or strided storage
-    weights = {k: v.detach().to("cpu").contiguous().clone() for k, v in policy.state_dict().items()}
-    tmp = stem.with_name(stem.name + WEIGHTS_SUFFIX + ".tmp")
-    save_file(weights, str(tmp), metadata={"format": "pt", "kind": kind})
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, stem.with_suffix(WEIGHTS_SUFFIX))
+    write_tensors(stem.with_suffix(WEIGHTS_SUFFIX), policy.state_dict(), {"format": "pt", "kind": kind})
     write_text_atomic(stem.with_suffix(CARD_SUFFIX), text)
     return card
 
@@ -259,10 +254,25 @@ def write_text_atomic(path: Path, text: str) -> None:
         raise
 
 
+def write_tensors(path: Path, tensors: dict[str, torch.Tensor], metadata: dict[str, str] | None = None) -> None:
+    """Write a safetensors file via a temporary file and a rename, readable by all like the cards."""
+    tmp = path.with_name(path.name + ".tmp")
+    # contiguous copies: safetensors refuses shared or strided storage
+    save_file({k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}, str(tmp), metadata=metadata)
+    os.chmod(tmp, 0o644)
+    os.replace(tmp, path)
+
+
+def read_tensors(path: Path, what: str = "safetensors file") -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """The tensors and metadata of a safetensors file; a `CheckpointError` naming it and `what` it should be otherwise."""
+    try:
+        with safe_open(str(path), framework="pt", device="cpu") as f:
+            return {k: f.get_tensor(k) for k in f.keys()}, f.metadata() or {}
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"{path}: not a readable {what}: {exc}") from None
+
+
 def _read_weights(path: Path) -> dict[str, torch.Tensor]:
     if not path.is_file():
         raise CheckpointError(f"{path}: weights file not found")
-    try:
-        return load_file(str(path), device="cpu")
-    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
-        raise CheckpointError(f"{path}: not a readable safetensors file: {exc}") from None
+    return read_tensors(path)[0]

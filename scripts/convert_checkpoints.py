@@ -12,19 +12,23 @@ checkpoint is left as it is.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
 import torch
-from safetensors import safe_open
-from safetensors.torch import save_file
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
-from policies.checkpoint import CheckpointError, checkpoint_stem, load_card, load_checkpoint  # noqa: E402
+from policies.checkpoint import (  # noqa: E402
+    CheckpointError,
+    checkpoint_stem,
+    load_card,
+    load_checkpoint,
+    read_tensors,
+    write_tensors,
+)
 from policies.normalization import Normalizer  # noqa: E402
 
 LEGACY_KEYS = ("angle_mean", "angle_std")
@@ -35,9 +39,7 @@ def convert(stem: str | Path) -> bool:
     stem = checkpoint_stem(stem)
     path = stem.with_suffix(".safetensors")
     card = load_card(stem)
-    with safe_open(str(path), framework="pt") as f:
-        metadata = f.metadata()
-        weights = {key: f.get_tensor(key) for key in f.keys()}
+    weights, metadata = read_tensors(path)
     if not set(LEGACY_KEYS) & set(weights):
         return False
     arch = card["architecture"]
@@ -48,10 +50,7 @@ def convert(stem: str | Path) -> bool:
                 f"{path}: {key} {weights.get(key)} differs from the card's normalization ({want}): not converted"
             )
     kept = {key: value for key, value in weights.items() if key not in LEGACY_KEYS}
-    tmp = path.with_name(path.name + ".tmp")
-    save_file(kept, str(tmp), metadata=metadata)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+    write_tensors(path, kept, metadata)
     load_checkpoint(stem)  # loads now
     return True
 

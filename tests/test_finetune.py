@@ -342,7 +342,7 @@ def test_a_dagger_run_keeps_its_labels_and_a_later_run_starts_its_pool_with_them
     with pytest.raises(ValueError, match="is a setting of --algo dagger"):
         _tiny(tmp_path, dagger_labels=str(run / "labels.safetensors"))
     (tmp_path / "junk.safetensors").write_bytes(b"not labels")
-    with pytest.raises(ValueError, match="junk.safetensors: not a labels file"):
+    with pytest.raises(ValueError, match="junk.safetensors: not a readable labels file"):
         DaggerFit(
             FlowChooser(teacher, card, later),
             dataclasses.replace(later, dagger_labels=str(tmp_path / "junk.safetensors")),

@@ -19,11 +19,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors import SafetensorError, safe_open
-from safetensors.torch import save_file
 
 from policies.base import ActingPolicy
-from policies.checkpoint import load_checkpoint
+from policies.checkpoint import load_checkpoint, read_tensors, write_tensors
 from policies.factory import build_policy
 from pusht.rollout import row_noise, run_episodes
 from training.finetune_config import FinetuneConfig
@@ -94,8 +92,8 @@ class DaggerFit(Resumable):
 
     def save_labels(self, path: str | Path) -> None:
         """Write the pool (states and the chooser's normalized picks) for `dagger_labels` of a later run."""
-        data = {k: v[: self.replay.size].contiguous() for k, v in self.replay.data.items()}
-        save_file(data, str(path), metadata={"normalization": json.dumps(self.trained.normalization, sort_keys=True)})
+        metadata = {"normalization": json.dumps(self.trained.normalization, sort_keys=True)}
+        write_tensors(Path(path), self.replay.filled(), metadata)
 
     def _labelling_act(self, share: float):
         """The rollout's act: every row labelled with the chooser's pick, played by the chooser in a `share` of rows."""
@@ -154,12 +152,11 @@ def _student_weights(chooser: torch.nn.Module, cfg: FinetuneConfig) -> dict[str,
 
 def read_labels(path: str, normalization: dict, widths: dict[str, int]) -> dict[str, torch.Tensor]:
     """The labels `DaggerFit.save_labels` wrote, checked against the chooser's normalization (its picks are normalized)."""
+    labels, metadata = read_tensors(Path(path), "labels file of a dagger run")
     try:
-        with safe_open(path, framework="pt") as f:
-            labels = {k: f.get_tensor(k) for k in f.keys()}
-            saved = json.loads((f.metadata() or {}).get("normalization", "null"))
-    except (OSError, SafetensorError, ValueError) as e:
-        raise ValueError(f"{path}: not a labels file of a dagger run ({e})") from None
+        saved = json.loads(metadata.get("normalization", "null"))
+    except ValueError:
+        saved = None
     shapes = {k: list(v.shape) for k, v in labels.items()}
     if set(labels) != set(widths) or any(
         v.ndim != 2 or v.shape[1] != widths[k] or len(v) != len(labels["state"]) for k, v in labels.items()

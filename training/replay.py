@@ -27,9 +27,13 @@ class ReplayBuffer:
         self._at = int((self._at + n) % self.capacity)
         self.size = min(self.capacity, self.size + n)
 
+    def filled(self) -> dict[str, torch.Tensor]:
+        """The filled rows of each field (views)."""
+        return {k: v[: self.size] for k, v in self.data.items()}
+
     def state(self, prefix: str) -> tuple[dict[str, torch.Tensor], dict[str, int]]:
         """The filled part as tensors, and the ring's position, for a resumable checkpoint."""
-        return {f"{prefix}.{k}": v[: self.size] for k, v in self.data.items()}, {"size": self.size, "at": self._at}
+        return {f"{prefix}.{k}": v for k, v in self.filled().items()}, {"size": self.size, "at": self._at}
 
     def load_state(self, prefix: str, tensors: dict[str, torch.Tensor], extra: dict[str, int]) -> None:
         """Refill from what `state` returned."""

@@ -42,10 +42,8 @@ from typing import Any, Iterator
 
 import numpy as np
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
 
-from policies.checkpoint import write_text_atomic
+from policies.checkpoint import read_tensors, write_tensors, write_text_atomic
 
 STATE_FILE = "state.json"
 CONFIG_FILE = "config.json"
@@ -159,9 +157,7 @@ class Run:
         if not self.is_main:
             return
         name = f"state-{step:09d}.safetensors"
-        tmp = self.dir / (name + ".tmp")
-        save_file({k: v.detach().cpu().contiguous().clone() for k, v in tensors.items()}, str(tmp))
-        tmp.replace(self.dir / name)
+        write_tensors(self.dir / name, tensors)
         record = {"step": step, "file": name, "elapsed_s": self.elapsed_s, "finished": False, "extra": extra or {}}
         write_text_atomic(self.dir / STATE_FILE, json.dumps(record, indent=2, allow_nan=False) + "\n")
         self._drop_state_files(keep=name)
@@ -170,11 +166,7 @@ class Run:
         """(step, tensors, extra) of the saved state when resuming, else None."""
         if not self.resumed:
             return None
-        path = self.dir / self._state["file"]
-        try:
-            tensors = load_file(str(path), device="cpu")
-        except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
-            raise RunError(f"{path}: cannot read the resumable state: {exc}") from None
+        tensors, _ = read_tensors(self.dir / self._state["file"], "resumable state")
         return self._state["step"], tensors, self._state["extra"]
 
     def finish(self, step: int | None = None, extra: dict[str, Any] | None = None) -> None:
