@@ -56,3 +56,28 @@ class StateSkipMLP(nn.Module):
                 h = torch.cat([h, cond], dim=1)
             h = self.dropout(F.relu(layer(h)))
         return self.out(torch.cat([h, cond], dim=1))
+
+    @torch.no_grad()
+    def grow_from(self, narrow: StateSkipMLP) -> None:
+        """Compute `narrow`'s function with this net's wider layers: its units copied in, the extra units' outputs read
+        with zero weights (their inputs stay random), so training grows into them."""
+        pairs = [*zip(self.hidden, narrow.hidden), (self.out, narrow.out)]
+        if (
+            len(self.hidden) != len(narrow.hidden)
+            or self.hidden[0].in_features != narrow.hidden[0].in_features
+            or self.out.out_features != narrow.out.out_features
+            or self.out.in_features - self.hidden[-1].out_features != narrow.out.in_features - narrow.hidden[-1].out_features
+            or any(wide.out_features < small.out_features for wide, small in pairs)
+        ):
+            raise ValueError("a net grows only from one as deep, no wider in any layer, with the same inputs and outputs")
+        prev_small = prev_wide = 0
+        for i, (wide, small) in enumerate(pairs):
+            rows = slice(0, small.out_features)
+            if i == 0:
+                wide.weight[rows] = small.weight
+            else:  # inputs: the previous layer's units, then the conditioning
+                wide.weight[rows, :prev_small] = small.weight[:, :prev_small]
+                wide.weight[rows, prev_small:prev_wide] = 0.0
+                wide.weight[rows, prev_wide:] = small.weight[:, prev_small:]
+            wide.bias[rows] = small.bias
+            prev_small, prev_wide = small.out_features, wide.out_features

@@ -319,8 +319,39 @@ def test_a_dagger_fit_teaches_a_plain_flow_the_choosers_picks(tmp_path: Path) ->
         and again.opt.param_groups[0]["lr"] == pytest.approx(more.dagger_lr * 0.5 * (1 + np.cos(np.pi * 3 / 4)))
     )  # the last of the 4 updates
     assert load_card(finetune(more).dir / "last")["teacher"] == str(chooser)
-    with pytest.raises(ValueError, match="a plain flow of the architecture"):
+    with pytest.raises(ValueError, match="a plain flow of the chooser's flow architecture"):
         DaggerFit(agent, dataclasses.replace(more, init=str(chooser)), torch.Generator())
+
+
+def test_a_dagger_student_grows_into_wider_layers_and_starts_as_the_same_function(tmp_path: Path) -> None:
+    """`dagger_student_dims` grows the student's first weights into wider layers: before its first fit it computes
+    what the flow it came from computes; fewer or narrower layers are refused with the setting's name."""
+    from training.dagger_fit import DaggerFit
+    from training.outcome_fit import FlowChooser
+
+    chooser = finetune(_tiny(tmp_path, iterations=1, eval_every=0)).dir / "last"
+    teacher, card = load_checkpoint(chooser)
+    narrow = card["architecture"]["hidden_dims"]
+    wide = [2 * w for w in narrow[:-1]] + [narrow[-1] + 3]
+    cfg = _tiny(tmp_path, name="w", algo="dagger", init=str(chooser), dagger_student_dims=",".join(map(str, wide)))
+    grown = DaggerFit(FlowChooser(teacher, card, cfg), cfg, torch.Generator()).trained.policy
+    plain = DaggerFit(FlowChooser(teacher, card, cfg), dataclasses.replace(cfg, dagger_student_dims=""), torch.Generator())
+    assert grown.architecture["hidden_dims"] == wide and plain.trained.policy.architecture["hidden_dims"] == narrow
+    states = torch.tensor([[200, 300, 250, 250, 0.5], [100, 100, 300, 300, 1.0]])
+    x_t, t = torch.randn(2, grown.horizon, grown.action_dim, generator=torch.Generator().manual_seed(1)), torch.rand(2)
+    with torch.no_grad():
+        torch.testing.assert_close(
+            grown(grown.policy_state(states), x_t, t), plain.trained.policy(grown.policy_state(states), x_t, t)
+        )
+    for bad in (narrow[:-1], [*narrow[:-1], narrow[-1] - 1]):
+        with pytest.raises(ValueError, match="dagger_student_dims"):
+            DaggerFit(
+                FlowChooser(teacher, card, cfg), dataclasses.replace(cfg, dagger_student_dims=",".join(map(str, bad))), None
+            )
+    with pytest.raises(ValueError, match="dagger_student_dims is a setting of --algo dagger"):
+        _tiny(tmp_path, dagger_student_dims="64")
+    with pytest.raises(ValueError, match="dagger_student_dims must be comma-separated"):
+        _tiny(tmp_path, algo="dagger", dagger_student_dims="64,wide")
 
 
 def test_a_dagger_run_keeps_its_labels_and_a_later_run_starts_its_pool_with_them(tmp_path: Path) -> None:

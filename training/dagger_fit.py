@@ -49,9 +49,7 @@ class DaggerFit(Resumable):
     def __init__(self, agent: FlowChooser, cfg: FinetuneConfig, generator: torch.Generator) -> None:
         self.agent, self.cfg, self.generator = agent, cfg, generator
         chooser = agent.policy
-        plain = {k: v for k, v in chooser.architecture.items() if k not in CHOOSER_KEYS}
-        policy = build_policy("flow", **plain)
-        policy.load_state_dict(_student_weights(chooser, cfg))
+        policy = _student(chooser, cfg)
         policy.normalizer.set(chooser.normalizer)
         self.trained = Student(policy, policy.normalizer.to_dict(), ActingPolicy(policy, num_steps=cfg.flow_num_steps))
         self.opt = torch.optim.AdamW(policy.parameters(), lr=cfg.dagger_lr, weight_decay=1e-4)
@@ -134,20 +132,30 @@ class DaggerFit(Resumable):
         return float(np.mean(losses[-100:]))
 
 
-def _student_weights(chooser: torch.nn.Module, cfg: FinetuneConfig) -> dict[str, torch.Tensor]:
-    """The student's first weights: the chooser's flow, or the plain flow `--init` when `--dagger-teacher` is the chooser."""
-    flow = {k: v for k, v in chooser.state_dict().items() if not k.startswith("outcome.")}
-    if not cfg.dagger_teacher:
-        return flow
-    student, card = load_checkpoint(cfg.init)
-    weights = student.state_dict()
-    if (
-        card["kind"] != "flow"
-        or "outcome_dims" in card["architecture"]
-        or {k: v.shape for k, v in weights.items()} != {k: v.shape for k, v in flow.items()}
-    ):
-        raise ValueError(f"{cfg.init}: a dagger student must be a plain flow of the architecture of the chooser's flow")
-    return weights
+def _student(chooser: torch.nn.Module, cfg: FinetuneConfig) -> torch.nn.Module:
+    """The student: the chooser's flow, or the plain flow `--init` when `--dagger-teacher` is the chooser, grown to
+    `dagger_student_dims` when they are set."""
+    plain = {k: v for k, v in chooser.architecture.items() if k not in CHOOSER_KEYS}
+    start = build_policy("flow", **plain)
+    start.load_state_dict({k: v for k, v in chooser.state_dict().items() if not k.startswith("outcome.")})
+    if cfg.dagger_teacher:
+        start, card = load_checkpoint(cfg.init)
+        free = {"hidden_dims": None, "noise_scale": None}  # its widths and its sampling may differ
+        if card["kind"] != "flow" or {**card["architecture"], **free} != {**plain, **free}:
+            raise ValueError(f"{cfg.init}: a dagger student must be a plain flow of the chooser's flow architecture (any widths)")
+    dims = cfg.dagger_student_dims_list() or start.architecture["hidden_dims"]
+    if dims == start.architecture["hidden_dims"]:
+        return start
+    if not start.architecture["state_skip"]:
+        raise ValueError("dagger_student_dims: only a state_skip flow grows into wider layers")
+    student = build_policy("flow", **{**start.architecture, "hidden_dims": dims})
+    try:
+        student.net.grow_from(start.net)
+    except ValueError as e:
+        raise ValueError(
+            f"dagger_student_dims {dims}: {e} (the flow it starts from: {start.architecture['hidden_dims']})"
+        ) from None
+    return student
 
 
 def read_labels(path: str, normalization: dict, widths: dict[str, int]) -> dict[str, torch.Tensor]:

@@ -74,6 +74,11 @@ class FinetuneConfig:
         "dagger: labels.safetensors of an earlier dagger run of the same chooser, its labels put in the pool before the "
         "first iteration (every dagger run writes its own beside its checkpoint)",
     )
+    dagger_student_dims: str = option(
+        "",
+        "dagger: the student's hidden widths (comma-separated; default: those of the flow it starts from), as many layers, "
+        "none narrower; its first weights are grown into them, so it starts as the same function",
+    )
     dagger_updates: int = option(4000, "dagger: minibatches of flow matching on all labels per iteration")
     dagger_lr: float = option(1e-4, "dagger: AdamW learning rate of the student flow")
     dagger_lr_schedule: str = option(
@@ -138,7 +143,7 @@ class FinetuneConfig:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.dagger_lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"dagger_lr_schedule must be constant or cosine, got {self.dagger_lr_schedule!r}")
-        for name in ("dagger_teacher", "dagger_labels"):
+        for name in ("dagger_teacher", "dagger_labels", "dagger_student_dims"):
             if getattr(self, name) and self.algo != "dagger":
                 raise ValueError(f"{name} is a setting of --algo dagger")
         if not self.value_tau > 0:
@@ -146,6 +151,7 @@ class FinetuneConfig:
         self.outcome_dims_list()
         self.value_dims_list()
         self.stretches_list()
+        self.dagger_student_dims_list()
 
     def chooser_stem(self) -> str:
         """The checkpoint the chooser comes from: `dagger_teacher` when set, else `init`."""
@@ -154,6 +160,10 @@ class FinetuneConfig:
     def outcome_dims_list(self) -> list[int]:
         """`outcome_dims` as a list of widths."""
         return _widths("outcome_dims", self.outcome_dims)
+
+    def dagger_student_dims_list(self) -> list[int] | None:
+        """`dagger_student_dims` as a list of widths (None: unset)."""
+        return _widths("dagger_student_dims", self.dagger_student_dims) if self.dagger_student_dims else None
 
     def value_dims_list(self) -> list[int]:
         """`value_dims` as a list of widths."""
