@@ -110,11 +110,15 @@ def test_shares_model_calls_with_act(server: UvicornProcess) -> None:
             )
         else:
             bodies.append(("/act", {"policy": "flow", "state": state, "seed": i}))
-    before = _batch_counts(server.url)
-    answers = asyncio.run(_burst(server.port, bodies))
-    after = _batch_counts(server.url)
-    calls, requests = after[0] - before[0], after[1] - before[1]
-    assert requests == len(bodies) and calls < requests, (calls, requests)
+    for _ in range(5):  # on a loaded machine each request of a burst may arrive alone and run at once; another merges
+        before = _batch_counts(server.url)
+        answers = asyncio.run(_burst(server.port, bodies))
+        after = _batch_counts(server.url)
+        calls, requests = after[0] - before[0], after[1] - before[1]
+        assert requests == len(bodies), (calls, requests)
+        if calls < requests:
+            break
+    assert calls < requests, (calls, requests)
     for i, ((path, _), (status, body)) in enumerate(zip(bodies, answers, strict=True)):
         assert status == 200, body
         payload = json.loads(body)
