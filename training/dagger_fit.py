@@ -90,6 +90,10 @@ class DaggerFit(Resumable):
         finished_success.extend(e.success for e in summary.episodes)
         return {"episodes": self.episodes, "flow_loss": self._fit(), "labels": self.replay.size, "teacher_share": share}
 
+    def save_outputs(self, run_dir: Path) -> None:
+        """The pool as labels.safetensors, for `dagger_labels` of a later run."""
+        self.save_labels(run_dir / "labels.safetensors")
+
     def save_labels(self, path: str | Path) -> None:
         """Write the pool (states and the chooser's normalized picks) for `dagger_labels` of a later run."""
         metadata = {"normalization": json.dumps(self.trained.normalization, sort_keys=True)}

@@ -176,8 +176,7 @@ class _FineTuning:
         if cfg.eval_every > 0:
             self.evaluate(cfg.iterations)
         self.save(cfg.iterations, finished=True)
-        if hasattr(self.algorithm, "save_labels"):
-            self.algorithm.save_labels(self.run.dir / "labels.safetensors")
+        self.algorithm.save_outputs(self.run.dir)
         self.run.finish(cfg.iterations)
         print(f"done: {cfg.iterations} iterations in {self.run.elapsed_s:.0f} s; outputs in {self.run.dir}", file=sys.stderr)
 

@@ -10,6 +10,8 @@ own choices lead to. After each decision, `updates_per_decision` minibatches of 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 
@@ -42,6 +44,9 @@ class Resumable:
             packed, extra["replays"][name] = replay.state(prefix=f"replay.{name}")
             tensors.update(packed)
         return tensors, extra
+
+    def save_outputs(self, run_dir: Path) -> None:
+        """What the learner leaves in its run folder when the run finishes, beside the checkpoint: nothing by default."""
 
     def load_state(self, tensors: dict[str, torch.Tensor], extra: dict) -> None:
         """Restore what `state` saved."""
