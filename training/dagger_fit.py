@@ -96,8 +96,7 @@ class DaggerFit(Resumable):
 
     def save_labels(self, path: str | Path) -> None:
         """Write the pool (states and the chooser's normalized picks) for `dagger_labels` of a later run."""
-        metadata = {"normalization": json.dumps(self.trained.normalization, sort_keys=True)}
-        write_tensors(Path(path), self.replay.filled(), metadata)
+        write_tensors(Path(path), self.replay.filled(), {"normalization": _stamp(self.trained.normalization)})
 
     def _labelling_act(self, share: float):
         """The rollout's act: every row labelled with the chooser's pick, played by the chooser in a `share` of rows."""
@@ -157,15 +156,16 @@ def _student_weights(chooser: torch.nn.Module, cfg: FinetuneConfig) -> dict[str,
 def read_labels(path: str, normalization: dict, widths: dict[str, int]) -> dict[str, torch.Tensor]:
     """The labels `DaggerFit.save_labels` wrote, checked against the chooser's normalization (its picks are normalized)."""
     labels, metadata = read_tensors(Path(path), "labels file of a dagger run")
-    try:
-        saved = json.loads(metadata.get("normalization", "null"))
-    except ValueError:
-        saved = None
     shapes = {k: list(v.shape) for k, v in labels.items()}
     if set(labels) != set(widths) or any(
         v.ndim != 2 or v.shape[1] != widths[k] or len(v) != len(labels["state"]) for k, v in labels.items()
     ):
         raise ValueError(f"{path}: a labels file holds state and x0 rows of widths {widths}, as many of each, got {shapes}")
-    if saved != json.loads(json.dumps(normalization, sort_keys=True)):
+    if metadata.get("normalization") != _stamp(normalization):
         raise ValueError(f"{path}: labelled under another normalization than this chooser's")
     return labels
+
+
+def _stamp(normalization: dict) -> str:
+    """The normalization as a labels file records it (its picks are in those units)."""
+    return json.dumps(normalization, sort_keys=True)
