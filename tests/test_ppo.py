@@ -81,3 +81,18 @@ def test_advantages_are_discounted_returns_with_lambda_one_and_a_zero_critic(tmp
     want = [[1 + g * 2 + g * g * 4, 0.5], [2 + g * 4, 0 + g * 1], [4, 1]]
     np.testing.assert_allclose(batch["advantage"].reshape(3, 2).numpy(), want, rtol=1e-5)
     np.testing.assert_allclose(batch["return"].numpy(), batch["advantage"].numpy())
+
+
+def test_a_resumed_ppo_fit_has_the_flow_the_critic_and_the_episodes_it_saved(tmp_path: Path) -> None:
+    cfg = _tiny(tmp_path, ppo_warmup=0)
+    base, card = load_checkpoint(SHIPPED)
+    fit = PPOFit(FlowChooser(base, card, cfg), cfg, torch.Generator().manual_seed(0))
+    fit.iterate([], [])
+    tensors, extra = fit.state()
+    again = PPOFit(FlowChooser(*load_checkpoint(SHIPPED), cfg), cfg, torch.Generator().manual_seed(0))
+    again.load_state(tensors, json.loads(json.dumps(extra)))
+    assert again.iterations == 1 and again.episodes == fit.episodes >= cfg.num_envs
+    for mine, theirs in ((fit.trained.policy, again.trained.policy), (fit.critic.net, again.critic.net)):
+        for name, tensor in mine.state_dict().items():
+            assert torch.equal(tensor, theirs.state_dict()[name]), name
+    assert again.opt.state_dict()["state"].keys() == fit.opt.state_dict()["state"].keys()

@@ -5,8 +5,8 @@ fixed std `ppo_sigma` (normalized chunk units) over the chunk the env executes, 
 its start noise, and the policy gradient reaches the flow's weights through its Euler steps (ReinFlow injects such noise
 at every step; one draw at the end is enough here). One decision is one 12-action chunk, executed open loop in
 `num_envs` envs (`training.chunk_env`) on training seeds. The return rewards finishing early: 1 at success, discounted by
-`ppo_gamma` per env step, shaped by the env's reward as a potential (gamma^12 phi(s') - phi(s), which keeps the best
-policy the same and gives every chunk its share). A critic of the state and the episode's clock gives the advantages
+`ppo_gamma` per env step, shaped by the env's reward as a potential (gamma^12 phi(s') - phi(s), phi 0 past the end: every chunk is credited
+with its progress, and a finished episode's shaping sums to -phi(start)). A critic of the state and the episode's clock gives the advantages
 (GAE); its first `ppo_warmup` iterations fit only the critic. The checkpoint is the flow itself, acting without the
 Gaussian: still a sampler whose start noise changes its actions, with `flow_num_steps` Euler steps.
 """
@@ -37,7 +37,6 @@ class PPOFit(Resumable):
         self.critic = Critic(policy, cfg.value_dims_list())
         self.opt = torch.optim.Adam(policy.parameters(), lr=cfg.ppo_lr)
         self.critic_opt = torch.optim.Adam(self.critic.net.parameters(), lr=cfg.critic_lr)
-        self.chunk_dim = policy.horizon * policy.action_dim
         self.discount = cfg.ppo_gamma**policy.horizon  # per chunk
         self.iterations = 0
         self.episodes_before = 0  # started before a resume: the envs go on at the next training seed
@@ -102,8 +101,6 @@ class PPOFit(Resumable):
             result = envs.step(actions)
             finished_max.extend(result.finished_max_reward)
             finished_success.extend(result.finished_success)
-            # the potential is 0 past the end, so a finished episode's shaping sums to -phi(start) and its return
-            # to gamma^(steps to success) - phi(start)
             reward = result.success + cfg.ppo_shaping * (
                 self.discount * np.where(result.done, 0.0, result.reward_end) - result.reward_start
             )
@@ -176,15 +173,15 @@ class PPOFit(Resumable):
 
 
 class Critic(nn.Module):
-    """The value of a state and the episode's clock (elapsed steps over the limit): the flow's own state encoding, an MLP."""
+    """The value of a state and the episode's clock (elapsed steps over the limit): an MLP on the flow's own encoding of
+    the state, which it does not train."""
 
     def __init__(self, policy: nn.Module, widths: list[int]) -> None:
         super().__init__()
-        self.policy = [policy]  # not a submodule: the critic saves and trains its own net only
-        self.net = mlp(policy.encode_state(policy.policy_state(torch.zeros(1, policy.state_dim))).shape[1] + 1, widths, 1, 0.0)
+        self.features = lambda state: policy.encode_state(policy.policy_state(state))
+        self.net = mlp(self.features(torch.zeros(1, policy.state_dim)).shape[1] + 1, widths, 1, 0.0)
 
     def forward(self, state: torch.Tensor, clock: torch.Tensor) -> torch.Tensor:
-        policy = self.policy[0]
         with torch.no_grad():
-            features = policy.encode_state(policy.policy_state(state))
+            features = self.features(state)
         return self.net(torch.cat([features, clock[:, None]], dim=1)).squeeze(1)
