@@ -36,7 +36,8 @@ def test_the_flow_recipe_shares_the_choosers_stages() -> None:
     flow, chooser = (load_recipe(REPO / "recipes" / f"{name}.toml") for name in ("flow", "flow-chooser"))
     shared = [s.name for s in chooser.stages if s.run != "ship"]
     assert flow.stages[: len(shared)] == chooser.stages[: len(shared)]
-    assert [s.settings.get("algo") for s in flow.stages[len(shared) : -1]] == ["dagger"] * (len(flow.stages) - len(shared) - 1)
+    algos = [s.settings.get("algo") for s in flow.stages[len(shared) : -1]]
+    assert algos == ["dagger"] * (len(algos) - 1) + ["ppo"]  # DAgger rounds, then PPO on the student's weights
 
 
 @pytest.mark.parametrize(
@@ -190,12 +191,12 @@ def test_reuse_shipped_restores_what_ships_and_runs_only_the_rest(smoke: Path, t
         (s["key"], s["wall_time_s"]) for s in shipped["stages"][:-1]
     ]
     assert (tmp_path / "models" / "flow.safetensors").read_bytes() == (smoke / "shipped" / "flow.safetensors").read_bytes()
-    # the last stage changed: the dagger stage reruns on the value stage restored from flow-chooser, whose ship stage's
-    # 256 candidates are undone to the 64 the recipe's stages set
+    # the dagger stages changed: they and the ppo stage after them rerun on the value stage restored from flow-chooser,
+    # whose ship stage's 256 candidates are undone to the 64 the recipe's stages set
     changed = tmp_path / "flow.toml"
     changed.write_text((REPO / "recipes" / "flow.toml").read_text().replace("dagger_updates = 20_000", "dagger_updates = 19_000"))
     statuses = _statuses(_recipe(changed, tmp_path, "--reuse-shipped"))
-    rerun = [s.name for s in load_recipe(changed).stages if s.settings.get("algo") == "dagger"] + ["ship"]
+    rerun = [s.name for s in load_recipe(changed).stages if s.settings.get("algo") in ("dagger", "ppo")] + ["ship"]
     assert [statuses.pop(name) for name in rerun] == ["ran"] * len(rerun)
     assert set(statuses.values()) == {"restored"}
     restored = json.loads(next((tmp_path / "runs").glob("value-*/last.json")).read_text())

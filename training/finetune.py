@@ -9,11 +9,13 @@ predicts closest to the goal. `--init` may be such a chooser, whose model the fi
 `--algo value` (`training.value_fit`) the chooser's value of time is fitted on its own episodes, and the
 chooser then plays the candidate whose predicted end state it values most. The
 flow's weights never change, except in `--algo dagger` (`training.dagger_fit`), which teaches a copy of them
-(or the plain flow `--init`, when `--dagger-teacher` names the chooser) the chooser's picks. One decision is one 12-action chunk executed open loop in `num_envs` envs
+(or the plain flow `--init`, when `--dagger-teacher` names the chooser) the chooser's picks, and in `--algo ppo`
+(`training.ppo_fit`), which fine-tunes the plain flow `--init` in the env on a return that rewards finishing early. One decision is one 12-action chunk executed open loop in `num_envs` envs
 (`training.chunk_env`, `pusht.rollout`), on training seeds disjoint from every evaluation and held-out range. Periodic
 evaluation uses `training.evaluate` on seeds 400000.. (never held out). Each checkpoint is a flow
-checkpoint, with `outcome_dims` in its architecture but for dagger's plain student: export, ship, the
-service and the client take it as they take any flow.
+checkpoint, with `outcome_dims` in its architecture but for the plain flows of dagger and ppo: export, ship, the
+service and the client take it as they take any flow (one fitted for other than 10 Euler steps records them as its
+`sampler_steps`).
 """
 
 from __future__ import annotations
@@ -25,10 +27,12 @@ import numpy as np
 import torch
 
 from policies.checkpoint import git_commit, load_checkpoint, require_state_only, save_checkpoint
+from pusht.spec import DEFAULT_NUM_STEPS
 from training.dagger_fit import DaggerFit
 from training.evaluate import evaluate_policy
 from training.finetune_config import RESUMABLE_CHANGES, FinetuneConfig, parse_config
 from training.outcome_fit import FlowChooser, OutcomeFit
+from training.ppo_fit import PPOFit
 from training.run import Run, RunError, RunStopped, pack_rng, unpack_rng
 from training.value_fit import ValueFit
 
@@ -85,7 +89,7 @@ class _FineTuning:
         require_state_only(base_card, stem, "fine-tuning")
         self.agent = FlowChooser(base, base_card, cfg)
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        learner = {"outcome": OutcomeFit, "value": ValueFit, "dagger": DaggerFit}[cfg.algo]
+        learner = {"outcome": OutcomeFit, "value": ValueFit, "dagger": DaggerFit, "ppo": PPOFit}[cfg.algo]
         self.algorithm = learner(self.agent, cfg, self.generator)
         self.run = Run.start(
             cfg.out_dir, cfg.name, cfg.to_dict(), resume=cfg.resume, overwrite=cfg.overwrite, may_change=RESUMABLE_CHANGES
@@ -96,6 +100,7 @@ class _FineTuning:
             "git_commit": git_commit(),
             "init": str(cfg.init),
             **({"teacher": cfg.dagger_teacher} if cfg.dagger_teacher else {}),
+            **({"sampler_steps": cfg.flow_num_steps} if cfg.flow_num_steps != DEFAULT_NUM_STEPS else {}),
             "reproduce": {"finetune": cfg.command()},
         }
         self.first = 1

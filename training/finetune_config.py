@@ -16,7 +16,7 @@ PROG = "python -m training.finetune"
 # fields that do not change what a run computes, so --resume accepts new values
 RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_every")
 # Noise-space PPO (DSRL) and a Q-critic picking start noises were tried and dropped (docs/findings.md).
-ALGOS = ("outcome", "value", "dagger")
+ALGOS = ("outcome", "value", "dagger", "ppo")
 
 
 @dataclass
@@ -33,7 +33,8 @@ class FinetuneConfig:
         "outcome",
         "what is fitted: outcome (a one-chunk model of the block that picks the best of --candidates chunks); value (the "
         "chooser's value of time, by policy iteration on its own episodes; --init must be an outcome chooser); dagger (a plain "
-        "flow, from the chooser's flow weights, taught the picks of the chooser --init at its own states)",
+        "flow, from the chooser's flow weights, taught the picks of the chooser --init at its own states); ppo (a plain flow "
+        "--init fine-tuned in the env by PPO on a discounted return)",
         choices=ALGOS,
     )
     name: str = option("flow-outcome", "run name; outputs go to OUT_DIR/NAME")
@@ -53,7 +54,7 @@ class FinetuneConfig:
     updates_per_decision: int = option(16, "gradient updates after each decision step of all envs")
     candidates: int = option(16, "candidates chosen from at each decision")
     label_envs: int = option(32, "envs whose state is labelled at each decision step")
-    value_dims: str = option("256,256,256", "value: hidden widths of the value model (comma-separated)")
+    value_dims: str = option("256,256,256", "value and ppo: hidden widths of the value model or critic (comma-separated)")
     value_tau: float = option(100.0, "value: a state's label is exp(-steps to success / tau), 0 in a failed episode")
     value_episodes: int = option(1024, "value: episodes played by the current chooser per iteration")
     value_max_steps: int = option(600, "value: step limit of those episodes (past 300, so slow successes are labelled too)")
@@ -81,6 +82,15 @@ class FinetuneConfig:
         "dagger: constant, or cosine (each iteration's fit anneals the rate from dagger_lr to 0)",
         choices=("constant", "cosine"),
     )
+    ppo_lr: float = option(1e-5, "ppo: Adam learning rate of the flow")
+    ppo_sigma: float = option(0.08, "ppo: std of the Gaussian around the flow's chunk in training (normalized chunk units)")
+    ppo_gamma: float = option(0.99, "ppo: discount per env step of the return (1 at success)")
+    ppo_lambda: float = option(0.95, "ppo: lambda of the generalized advantage estimates (per chunk)")
+    ppo_shaping: float = option(1.0, "ppo: weight of the env's reward as a potential in the return (0: success only)")
+    ppo_clip: float = option(0.1, "ppo: clip range of the probability ratio")
+    ppo_epochs: int = option(4, "ppo: passes over each iteration's chunks (minibatches of batch_size)")
+    ppo_target_kl: float = option(0.05, "ppo: stop an iteration's flow updates after an epoch whose mean KL exceeds this")
+    ppo_warmup: int = option(10, "ppo: first iterations that fit only the critic")
     flow_num_steps: int = option(10, "Euler steps of the frozen flow (and of the dagger student)")
     train_seed_start: int = option(10_000_000, "first training episode seed (episodes use consecutive seeds)")
     eval_every: int = option(50, "evaluate (and checkpoint) every N iterations (0: only at the end)")
@@ -122,18 +132,19 @@ class FinetuneConfig:
             "value_updates",
             "dagger_episodes",
             "dagger_updates",
+            "ppo_epochs",
         )
         for name in positive:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("critic_lr", "dagger_lr"):
+        for name in ("critic_lr", "dagger_lr", "ppo_lr", "ppo_sigma", "ppo_clip", "ppo_target_kl"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.resume and self.overwrite:
             raise ValueError("--resume and --overwrite exclude each other")
         if self.eval_every < 0 or self.train_seed_start < 0 or self.eval_seed < 0 or self.seed < 0:
             raise ValueError("eval_every, train_seed_start, eval_seed and seed must be >= 0")
-        for name in ("explore", "dagger_teacher_share"):
+        for name in ("explore", "dagger_teacher_share", "ppo_gamma", "ppo_lambda"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if self.dagger_lr_schedule not in ("constant", "cosine"):
@@ -141,6 +152,8 @@ class FinetuneConfig:
         for name in ("dagger_teacher", "dagger_labels"):
             if getattr(self, name) and self.algo != "dagger":
                 raise ValueError(f"{name} is a setting of --algo dagger")
+        if self.ppo_warmup < 0 or self.ppo_shaping < 0:
+            raise ValueError("ppo_warmup and ppo_shaping must be >= 0")
         if not self.value_tau > 0:
             raise ValueError(f"value_tau must be > 0, got {self.value_tau}")
         self.outcome_dims_list()

@@ -91,11 +91,16 @@ class FlowChooser:
 
 def _chooser_architecture(arch: dict, cfg: FinetuneConfig) -> dict:
     """What the fit adds to the init's architecture: its outcome chooser as configured, for `--algo value` (which
-    starts from an outcome chooser, kept as it is) a value model, for `--algo dagger` (the chooser teaches) nothing."""
+    starts from an outcome chooser, kept as it is) a value model, for `--algo dagger` (the chooser teaches) and `--algo
+    ppo` (a plain flow) nothing."""
     if cfg.algo in ("value", "dagger") and arch.get("outcome_dims") is None:
         raise ValueError(f"{cfg.chooser_stem()}: --algo {cfg.algo} starts from an outcome chooser (a flow with outcome_dims)")
     if cfg.algo == "dagger":
         return {}  # the chooser teaches as it is
+    if cfg.algo == "ppo":
+        if arch.get("outcome_dims") is not None:
+            raise ValueError(f"{cfg.init}: --algo ppo fine-tunes a plain flow, not an outcome chooser")
+        return {}
     if cfg.algo == "value":
         if arch.get("value_dims") is not None and list(arch["value_dims"]) != cfg.value_dims_list():
             raise ValueError(f"{cfg.init}: its value has value_dims {arch['value_dims']}; --value-dims must match")

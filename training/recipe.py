@@ -52,6 +52,7 @@ SCALED = {
         "value_updates",
         "dagger_episodes",
         "dagger_updates",
+        "ppo_warmup",
     ),
     "collect": ("episodes",),
     "ship": ("episodes",),
