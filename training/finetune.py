@@ -1,4 +1,4 @@
-"""Fine-tune beyond imitation, the flow's weights frozen: fit the outcome chooser that picks among its chunks.
+"""Fine-tune beyond imitation: an outcome chooser among a frozen flow's chunks, or a plain flow's own weights (dagger, ppo).
 
     python -m training.finetune --init runs/recipes/imitation-KEY/last --name flow-outcome --iterations 160 ...
     (the recipe stage `run = "finetune"` runs this: recipes/flow-chooser.toml)
@@ -7,15 +7,15 @@
 candidate chunks (each also at `--stretches`, faster); the served flow then plays the candidate it
 predicts closest to the goal. `--init` may be such a chooser, whose model the fit goes on fitting; with
 `--algo value` (`training.value_fit`) the chooser's value of time is fitted on its own episodes, and the
-chooser then plays the candidate whose predicted end state it values most. The
-flow's weights never change, except in `--algo dagger` (`training.dagger_fit`), which teaches a copy of them
-(or the plain flow `--init`, when `--dagger-teacher` names the chooser) the chooser's picks, and in `--algo ppo`
-(`training.ppo_fit`), which fine-tunes the plain flow `--init` in the env on a return that rewards finishing early. One decision is one 12-action chunk executed open loop in `num_envs` envs
-(`training.chunk_env`, `pusht.rollout`), on training seeds disjoint from every evaluation and held-out range. Periodic
-evaluation uses `training.evaluate` on seeds 400000.. (never held out). Each checkpoint is a flow
-checkpoint, with `outcome_dims` in its architecture but for the plain flows of dagger and ppo: export, ship, the
-service and the client take it as they take any flow (one fitted for other than 10 Euler steps records them as its
-`sampler_steps`).
+chooser then plays the candidate whose predicted end state it values most. The flow's weights never change, except
+in `--algo dagger` (`training.dagger_fit`), which teaches a copy of them (or the plain flow `--init`, when
+`--dagger-teacher` names the chooser) the chooser's picks, and in `--algo ppo` (`training.ppo_fit`), which fine-tunes
+the plain flow `--init` in the env on a return that rewards finishing early. One decision is one 12-action chunk
+executed open loop in `num_envs` envs (`training.chunk_env`, `pusht.rollout`), on training seeds disjoint from every
+evaluation and held-out range. Periodic evaluation uses `training.evaluate` on seeds 400000.. (never held out). Each
+checkpoint is a flow checkpoint, with `outcome_dims` in its architecture but for the plain flows of dagger and ppo:
+export, ship, the service and the client take it as they take any flow (one fitted for other than 10 Euler steps
+records them as its `sampler_steps`).
 """
 
 from __future__ import annotations

@@ -25,8 +25,8 @@ class FinetuneConfig:
 
     init: str = option(
         "",
-        "flow checkpoint stem to fine-tune (its weights stay frozen), or a flow with an outcome chooser, whose "
-        "model the fit goes on fitting",
+        "flow checkpoint stem to fine-tune (its weights stay frozen but in dagger and ppo), or a flow with an outcome "
+        "chooser, whose model the fit goes on fitting",
         required=True,
     )
     algo: str = option(
@@ -197,8 +197,9 @@ def parse_config(argv: list[str] | None = None) -> FinetuneConfig:
     parser = build_parser(
         FinetuneConfig,
         PROG,
-        "Fine-tune a flow beyond imitation, its weights frozen: fit a one-chunk outcome model that chooses among its chunks, "
-        "or that chooser's value of time; or teach a plain flow the chooser's picks (dagger).",
+        "Fine-tune a flow beyond imitation: fit a one-chunk outcome model that chooses among its frozen chunks, or that "
+        "chooser's value of time; teach a plain flow the chooser's picks (dagger); or fine-tune a plain flow in the env by "
+        "PPO (ppo).",
     )
     args = parser.parse_args(argv)
     try:
