@@ -4,11 +4,13 @@ The flow samples a chunk by integrating its velocity from start noise; here that
 fixed std `ppo_sigma` (normalized chunk units) over the chunk the env executes, so the sampler has a likelihood given
 its start noise, and the policy gradient reaches the flow's weights through its Euler steps (ReinFlow injects such noise
 at every step; one draw at the end is enough here). One decision is one 12-action chunk, executed open loop in
-`num_envs` envs (`training.chunk_env`) on training seeds. The return rewards finishing early: 1 at success, discounted by
-`ppo_gamma` per env step, shaped by the env's reward as a potential (gamma^12 phi(s') - phi(s), phi 0 past the end: every chunk is credited
-with its progress, and a finished episode's shaping sums to -phi(start)). A critic of the state and the episode's clock gives the advantages
-(GAE); its first `ppo_warmup` iterations fit only the critic. The checkpoint is the flow itself, acting without the
-Gaussian: still a sampler whose start noise changes its actions, with `flow_num_steps` Euler steps.
+`num_envs` envs (`training.chunk_env`) on training seeds. The return rewards finishing early: 1 at success, discounted
+by `ppo_gamma` per env step, shaped by the env's reward as a potential (gamma^12 phi(s') - phi(s), phi 0 past the end:
+each chunk is credited with its progress, and a finished episode's shaping sums to -phi(start)). A critic of the state
+and the episode's clock gives the advantages (GAE; an episode cut at the step limit ends there as a failure, which the
+clock lets the critic foresee); the first `ppo_warmup` iterations fit only the critic. The checkpoint is the flow
+itself, acting without the Gaussian: still a sampler whose start noise changes its actions, with `flow_num_steps`
+Euler steps.
 """
 
 from __future__ import annotations
