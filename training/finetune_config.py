@@ -15,7 +15,8 @@ from training.cli import build_parser, command_line, option
 PROG = "python -m training.finetune"
 # fields that do not change what a run computes, so --resume accepts new values
 RESUMABLE_CHANGES = ("progress", "threads", "resume", "overwrite", "checkpoint_every")
-# Noise-space PPO (DSRL) and a Q-critic picking start noises were tried and dropped (docs/findings.md).
+# Noise-space PPO (DSRL, the flow frozen) and a Q-critic picking start noises were tried and dropped (docs/findings.md);
+# --algo ppo is PPO on the flow's own weights.
 ALGOS = ("outcome", "value", "dagger", "ppo")
 
 
