@@ -84,7 +84,7 @@ class Policy:
         trained = self.card.sampler_steps
         if trained is not None and num_steps != trained:
             return (
-                f"num_steps={num_steps} is not available: policy {self.name!r} was distilled to sample in {trained} "
+                f"num_steps={num_steps} is not available: policy {self.name!r} was trained to sample in {trained} "
                 f"step{'s' if trained != 1 else ''}, and other counts do not give its actions"
             )
         return None

@@ -88,7 +88,7 @@ class Card:
 
     @property
     def sampler_steps(self) -> int | None:
-        """The one step count a distilled flow was trained for, else None (any count integrates)."""
+        """The one step count a flow was trained to sample in (distilled or fine-tuned at it), else None (any count integrates)."""
         return self.data.get("sampler_steps")
 
     @property

@@ -100,7 +100,7 @@ def _parser() -> argparse.ArgumentParser:
         "--num-steps",
         type=int,
         default=None,
-        help=f"flow: Euler steps unrolled into the graph (default: a distilled flow's own count, else {DEFAULT_NUM_STEPS})",
+        help=f"flow: Euler steps unrolled into the graph (default: a flow's trained count (sampler_steps), else {DEFAULT_NUM_STEPS})",
     )
     parser.add_argument(
         "--triton-repo",
@@ -112,7 +112,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def default_num_steps(stem: str | Path) -> int:
-    """The Euler steps to unroll for a checkpoint: a distilled flow's own count (`sampler_steps`), else DEFAULT_NUM_STEPS."""
+    """The Euler steps to unroll for a checkpoint: a flow's trained count (`sampler_steps`), else DEFAULT_NUM_STEPS."""
     return int(read_card(checkpoint_stem(stem)).sampler_steps or DEFAULT_NUM_STEPS)
 
 
